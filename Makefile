@@ -1,0 +1,38 @@
+# Every target that runs code depends on .venv, so each works on a fresh clone.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+TORCH_VERSION ?= 2.13.0
+
+.PHONY: install test test-fast cluster bench lint clean
+
+install: $(STAMP)
+
+# torch first, at the version that is a local CPU wheel on the dev/CI machines; the package's own
+# range admits it, so the editable install adds nothing heavy.
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/python -m pip install -q torch==$(TORCH_VERSION)
+	$(BIN)/python -m pip install -q -e '.[dev,minigrid,plot]'
+	touch $(STAMP)
+
+test: install
+	$(BIN)/python -m pytest tests
+
+test-fast: install
+	$(BIN)/python -m pytest tests/unit
+
+cluster: install
+	$(BIN)/higher-cluster --preset higher --world paper $(ARGS)
+
+bench: install
+	mkdir -p results
+	$(BIN)/higher-bench all --results results
+
+lint: install
+	$(BIN)/python -m compileall -q higher_dist tests
+
+clean:
+	rm -rf $(VENV) .pytest_cache .hypothesis

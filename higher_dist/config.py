@@ -1,0 +1,313 @@
+"""One typed, frozen config tree for every role, with presets for the paper's five methods.
+
+The learner owns the config of a run: actors and the relabeler receive it in the welcome message as a
+plain dict (`to_dict`) and rebuild it with `from_dict`, so no role can run with a config that differs
+from the learner's. `validate` refuses inconsistent values with a message that names the field.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+COLORS = ("red", "green", "blue", "purple", "yellow", "grey")
+TYPES = ("key", "ball")
+SHADES = ("very_light", "light", "neutral", "dark", "very_dark")
+SIZES = ("tiny", "small", "medium", "large", "giant")
+
+PRESETS = ("dqn", "her", "noisy-her", "higher", "reward")
+WORLDS = ("paper", "small")
+
+
+class ConfigError(ValueError):
+    """A config value that cannot work; the message names the field and the reason."""
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    name: str = "paper"
+    room_size: int = 10  # interior cells per side; the outer wall is added around it
+    n_objects: int = 10
+    colors: tuple[str, ...] = COLORS
+    types: tuple[str, ...] = TYPES
+    shades: tuple[str, ...] = SHADES
+    sizes: tuple[str, ...] = SIZES
+    max_steps: int = 40
+    view_size: int = 7
+    heldout_count: int = 60  # objects kept out of training goals (paper: 60 of 300)
+    split_seed: int = 0
+    reward_shaping: bool = False  # DQN+reward: 0.25 per matching attribute of the picked object
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    embed_dim: int = 16  # per-channel value embedding of the 7x7x4 view
+    conv_channels: tuple[int, ...] = (32, 64)
+    frame_stack: int = 4  # memory of the past for partial observability; 1 = none
+    fusion: str = "film"  # film | concat
+    word_embed_dim: int = 32
+    text_hidden: int = 64  # GRU over the instruction
+    hidden: int = 128
+    dueling: bool = True
+
+
+@dataclass(frozen=True)
+class DQNConfig:
+    batch_size: int = 64
+    lr: float = 5e-4
+    adam_eps: float = 1e-6
+    gamma: float = 0.99
+    n_step: int = 3
+    huber_delta: float = 1.0
+    grad_clip: float = 10.0
+    target_update: str = "period"  # period | polyak
+    target_period: int = 500  # updates between hard target copies
+    polyak_tau: float = 0.005
+    double: bool = True
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    capacity: int = 200_000  # transitions (frames), FIFO eviction by whole episodes
+    alpha: float = 0.6
+    beta_start: float = 0.4
+    beta_end: float = 1.0
+    beta_frames: int = 5_000_000  # frames over which beta anneals to beta_end
+    min_size: int = 2_000  # transitions before learning starts
+    samples_per_insert: float = 8.0  # replay ratio kept by the rate limiter (as in Reverb)
+    priority_eps: float = 1e-3
+    checkpoint_replay: bool = False
+
+
+@dataclass(frozen=True)
+class ExplorationConfig:
+    kind: str = "apex"  # apex | linear
+    eps_base: float = 0.4  # Ape-X: eps_i = eps_base ** (1 + apex_alpha * i / (N - 1))
+    apex_alpha: float = 2.0  # small alpha suits a handful of actors
+    eps_start: float = 1.0  # linear decay (the paper's schedule)
+    eps_end: float = 0.05
+    decay_frames: int = 1_000_000
+
+
+@dataclass(frozen=True)
+class GeneratorConfig:
+    embed_dim: int = 16
+    conv_channels: tuple[int, ...] = (32, 64)
+    word_embed_dim: int = 32
+    hidden: int = 128
+    max_len: int = 12  # decoding cap, END included
+    lr: float = 1e-3
+    batch_size: int = 64
+    capacity: int = 20_000  # (observation, instruction) pairs kept, FIFO
+    val_fraction: float = 0.1
+    n_min: int = 1000  # gate: pairs needed before relabelling (paper: 1000)
+    min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
+    train_steps_per_round: int = 50
+    rounds_per_eval: int = 4
+
+
+@dataclass(frozen=True)
+class RelabelConfig:
+    strategy: str = "none"  # none | expert | noisy | learned
+    noise_p: float = 0.2  # noisy expert: each attribute resampled with this probability
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    every_frames: int = 50_000
+    episodes: int = 64  # per goal set (training and held-out) each time
+
+
+@dataclass(frozen=True)
+class Config:
+    preset: str = "higher"
+    world: WorldConfig = field(default_factory=WorldConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    dqn: DQNConfig = field(default_factory=DQNConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
+    exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
+    generator: GeneratorConfig = field(default_factory=GeneratorConfig)
+    relabel: RelabelConfig = field(default_factory=RelabelConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    actors: int = 2
+    envs_per_actor: int = 32
+    frames: int = 5_000_000  # env frames budget of the run
+    seed: int = 0
+    device: str = "cpu"
+    torch_threads: int = 1
+    weights_every: int = 20  # learner updates between weight publications
+    stats_every_s: float = 2.0
+    checkpoint_every_s: float = 120.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+
+def small_world() -> WorldConfig:
+    """A world small enough to learn in CPU minutes: tests and smoke runs."""
+    return WorldConfig(
+        name="small", room_size=5, n_objects=2, colors=("red", "green"), types=("key", "ball"),
+        shades=("neutral",), sizes=("medium",), max_steps=20, heldout_count=2,
+    )
+
+
+def world_by_name(name: str) -> WorldConfig:
+    if name == "paper":
+        return WorldConfig()
+    if name == "small":
+        return small_world()
+    raise ConfigError(f"world: unknown world {name!r}; choose one of {', '.join(WORLDS)}")
+
+
+def make_config(preset: str = "higher", world: str = "paper", **overrides: Any) -> Config:
+    """The config of one of the paper's methods on a named world; top-level fields may be overridden."""
+    if preset not in PRESETS:
+        raise ConfigError(f"preset: unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    w = world_by_name(world)
+    relabel = {
+        "dqn": RelabelConfig("none"), "reward": RelabelConfig("none"), "her": RelabelConfig("expert"),
+        "noisy-her": RelabelConfig("noisy", 0.2), "higher": RelabelConfig("learned"),
+    }[preset]
+    if preset == "reward":
+        w = replace(w, reward_shaping=True)
+    cfg = Config(preset=preset, world=w, relabel=relabel)
+    if world == "small":
+        # The small world has few goals: the generator learns them from a few dozen pairs, and the
+        # replay fills in seconds.
+        cfg = replace(
+            cfg,
+            generator=replace(cfg.generator, n_min=100, capacity=2000, train_steps_per_round=20),
+            replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
+            exploration=replace(cfg.exploration, decay_frames=50_000),
+            eval=EvalConfig(every_frames=10_000, episodes=32),
+            frames=200_000, envs_per_actor=16,
+        )
+    cfg = override(cfg, **overrides)
+    validate(cfg)
+    return cfg
+
+
+def override(cfg: Config, **overrides: Any) -> Config:
+    """Replace fields by dotted name: override(cfg, **{"dqn.lr": 1e-3, "frames": 10})."""
+    for key, value in overrides.items():
+        cfg = _set_path(cfg, key.split("."), value, key)
+    return cfg
+
+
+def _set_path(obj: Any, path: list[str], value: Any, full: str) -> Any:
+    names = {f.name for f in fields(obj)}
+    if path[0] not in names:
+        raise ConfigError(f"{full}: no such config field (known here: {', '.join(sorted(names))})")
+    if len(path) == 1:
+        return replace(obj, **{path[0]: value})
+    return replace(obj, **{path[0]: _set_path(getattr(obj, path[0]), path[1:], value, full)})
+
+
+def from_dict(data: dict[str, Any]) -> Config:
+    """Rebuild a Config from `to_dict` output (e.g. received in a welcome message), then validate."""
+    if not isinstance(data, dict):
+        raise ConfigError("config: expected a mapping")
+    cfg = _build(Config, data, "")
+    validate(cfg)
+    return cfg
+
+
+def _build(cls: Any, data: dict[str, Any], prefix: str) -> Any:
+    known = {f.name: f for f in fields(cls)}
+    unknown = set(data) - set(known)
+    if unknown:
+        raise ConfigError(f"{prefix or 'config'}: unknown fields {sorted(unknown)}")
+    kwargs: dict[str, Any] = {}
+    defaults = cls()
+    for name, value in data.items():
+        default = getattr(defaults, name)
+        where = f"{prefix}{name}"
+        if dataclasses.is_dataclass(default):
+            if not isinstance(value, dict):
+                raise ConfigError(f"{where}: expected a mapping")
+            kwargs[name] = _build(type(default), value, where + ".")
+        elif isinstance(default, tuple):
+            if not isinstance(value, (list, tuple)):
+                raise ConfigError(f"{where}: expected a list")
+            kwargs[name] = tuple(value)
+        elif isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ConfigError(f"{where}: expected true or false, got {value!r}")
+            kwargs[name] = value
+        elif isinstance(default, (int, float)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"{where}: expected a number, got {value!r}")
+            if isinstance(default, int) and not isinstance(default, bool) and float(value) != int(value):
+                raise ConfigError(f"{where}: expected an integer, got {value!r}")
+            kwargs[name] = type(default)(value)
+        else:
+            if not isinstance(value, str):
+                raise ConfigError(f"{where}: expected a string, got {value!r}")
+            kwargs[name] = value
+    return cls(**kwargs)
+
+
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        raise ConfigError(message)
+
+
+def validate(cfg: Config) -> None:
+    """Refuse a config that cannot work, naming the field."""
+    w = cfg.world
+    _check(cfg.preset in PRESETS, f"preset: unknown preset {cfg.preset!r}; choose one of {', '.join(PRESETS)}")
+    _check(w.room_size >= 2, f"world.room_size: must be >= 2, got {w.room_size}")
+    _check(w.n_objects >= 1, f"world.n_objects: must be >= 1, got {w.n_objects}")
+    # One cell is the agent's, the others may hold objects.
+    _check(w.n_objects < w.room_size ** 2,
+           f"world.n_objects: {w.n_objects} objects do not fit with the agent in a "
+           f"{w.room_size}x{w.room_size} room ({w.room_size ** 2 - 1} free cells)")
+    _check(w.max_steps >= 1, f"world.max_steps: must be >= 1, got {w.max_steps}")
+    _check(w.view_size >= 3 and w.view_size % 2 == 1, f"world.view_size: must be odd and >= 3, got {w.view_size}")
+    for name, values, full in (("colors", w.colors, COLORS), ("types", w.types, TYPES),
+                               ("shades", w.shades, SHADES), ("sizes", w.sizes, SIZES)):
+        _check(len(values) >= 1, f"world.{name}: needs at least one value")
+        _check(len(set(values)) == len(values), f"world.{name}: repeated values {list(values)}")
+        bad = [v for v in values if v not in full]
+        _check(not bad, f"world.{name}: unknown values {bad}; allowed: {', '.join(full)}")
+    n_kinds = len(w.colors) * len(w.types) * len(w.shades) * len(w.sizes)
+    _check(0 <= w.heldout_count < n_kinds,
+           f"world.heldout_count: must be in [0, {n_kinds}) for {n_kinds} distinct objects, got {w.heldout_count}")
+    n = cfg.network
+    _check(n.fusion in ("film", "concat"), f"network.fusion: must be film or concat, got {n.fusion!r}")
+    _check(n.frame_stack >= 1, f"network.frame_stack: must be >= 1, got {n.frame_stack}")
+    _check(len(n.conv_channels) >= 1, "network.conv_channels: needs at least one layer")
+    d = cfg.dqn
+    _check(d.batch_size >= 1, f"dqn.batch_size: must be >= 1, got {d.batch_size}")
+    _check(d.lr > 0, f"dqn.lr: must be > 0, got {d.lr}")
+    _check(0.0 <= d.gamma <= 1.0, f"dqn.gamma: must be in [0, 1], got {d.gamma}")
+    _check(d.n_step >= 1, f"dqn.n_step: must be >= 1, got {d.n_step}")
+    _check(d.target_update in ("period", "polyak"), f"dqn.target_update: must be period or polyak, got {d.target_update!r}")
+    _check(0.0 < d.polyak_tau <= 1.0, f"dqn.polyak_tau: must be in (0, 1], got {d.polyak_tau}")
+    r = cfg.replay
+    _check(r.capacity >= 2 * (w.max_steps + 1), f"replay.capacity: must hold at least two episodes, got {r.capacity}")
+    _check(0 < r.min_size <= r.capacity, f"replay.min_size: must be in (0, capacity={r.capacity}], got {r.min_size}")
+    _check(r.alpha >= 0 and 0 <= r.beta_start <= 1 and 0 <= r.beta_end <= 1, "replay: alpha >= 0 and betas in [0, 1]")
+    _check(r.samples_per_insert > 0, f"replay.samples_per_insert: must be > 0, got {r.samples_per_insert}")
+    e = cfg.exploration
+    _check(e.kind in ("apex", "linear"), f"exploration.kind: must be apex or linear, got {e.kind!r}")
+    _check(0 <= e.eps_base <= 1 and 0 <= e.eps_end <= e.eps_start <= 1, "exploration: epsilons must lie in [0, 1], end <= start")
+    g = cfg.generator
+    _check(0 < g.val_fraction < 1, f"generator.val_fraction: must be in (0, 1), got {g.val_fraction}")
+    _check(0 <= g.min_accuracy <= 1, f"generator.min_accuracy: must be in [0, 1], got {g.min_accuracy}")
+    _check(g.max_len >= 6, f"generator.max_len: must be >= 6 to hold an instruction, got {g.max_len}")
+    _check(g.capacity >= 10, f"generator.capacity: must be >= 10, got {g.capacity}")
+    rl = cfg.relabel
+    _check(rl.strategy in ("none", "expert", "noisy", "learned"),
+           f"relabel.strategy: must be none, expert, noisy or learned, got {rl.strategy!r}")
+    _check(0 <= rl.noise_p <= 1, f"relabel.noise_p: must be in [0, 1], got {rl.noise_p}")
+    _check(cfg.actors >= 1, f"actors: must be >= 1, got {cfg.actors}")
+    _check(cfg.envs_per_actor >= 1, f"envs_per_actor: must be >= 1, got {cfg.envs_per_actor}")
+    _check(cfg.frames >= 1, f"frames: must be >= 1, got {cfg.frames}")
+    _check(cfg.device == "cpu" or cfg.device.startswith("cuda"), f"device: must be cpu or cuda[:N], got {cfg.device!r}")
+    _check(cfg.torch_threads >= 1, f"torch_threads: must be >= 1, got {cfg.torch_threads}")
+    _check(cfg.weights_every >= 1, f"weights_every: must be >= 1, got {cfg.weights_every}")
