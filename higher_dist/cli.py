@@ -1,0 +1,232 @@
+"""Entry points. Each parses its flags, builds the config, and hands over to one module; bad flags and
+bad config values are refused with a message that says what is wrong (exit code 2)."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any, Callable
+
+from higher_dist.config import PRESETS, WORLDS, Config, ConfigError, make_config
+
+
+def _die(prog: str, message: str) -> int:
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def add_config_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--preset", choices=PRESETS, default="higher", help="the paper's method to run")
+    p.add_argument("--world", choices=WORLDS, default="paper", help="paper: 10x10, 10 objects; small: tests")
+    p.add_argument("--actors", type=_positive_int, default=None, help="actor processes")
+    p.add_argument("--envs-per-actor", type=_positive_int, default=None, help="environments per actor")
+    p.add_argument("--frames", type=_positive_int, default=None, help="stop after this many env frames")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="learner device: cpu or cuda[:N]")
+    p.add_argument("--threads", type=_positive_int, default=1, help="torch threads per process")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="override any config field, e.g. --set dqn.lr=0.001 (repeatable)")
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    overrides: dict[str, Any] = {"seed": args.seed, "device": args.device, "torch_threads": args.threads}
+    for name in ("actors", "envs_per_actor", "frames"):
+        if getattr(args, name, None) is not None:
+            overrides[name] = getattr(args, name)
+    for item in args.set:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected FIELD=VALUE")
+        key, value = item.split("=", 1)
+        overrides[key.strip()] = _parse_value(value)
+    cfg = make_config(args.preset, args.world, **overrides)
+    # Round trip through the wire form so --set values get the declared types (e.g. tuples).
+    from higher_dist.config import from_dict
+
+    return from_dict(cfg.to_dict())
+
+
+def _network_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default="127.0.0.1", help="address the learner advertises (loopback by default)")
+    p.add_argument("--bind-host", default=None, help="interface to bind, e.g. 0.0.0.0 across hosts")
+    p.add_argument("--port-base", type=int, default=None, help="first of the five ports (default 5555)")
+    p.add_argument("--keys", default=None, help="CURVE keys folder (from higher-keys) to encrypt every socket")
+
+
+def _run(prog: str, build: Callable[[], int]) -> int:
+    try:
+        return build()
+    except ConfigError as e:
+        return _die(prog, str(e))
+    except ValueError as e:
+        return _die(prog, str(e))
+
+
+def cluster_main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser("higher-cluster", description="Run learner, relabeler, actors and dashboard here.")
+    add_config_flags(p)
+    _network_flags(p)
+    p.add_argument("--run-dir", default=None, help="where config, metrics and checkpoints go (default runs/PRESET-WORLD-sSEED)")
+    p.add_argument("--resume", action="store_true", help="continue from the run directory's checkpoints")
+    p.add_argument("--no-dashboard", action="store_true", help="no live dashboard (prints a line per interval)")
+    p.add_argument("--max-restarts", type=int, default=5, help="restarts of one role before giving up")
+    args = p.parse_args(argv)
+
+    def go() -> int:
+        from higher_dist.launch.local_cluster import run_local_cluster
+
+        cfg = config_from_args(args)
+        run_dir = args.run_dir or f"runs/{cfg.preset}-{cfg.world.name}-s{cfg.seed}"
+        return run_local_cluster(cfg, run_dir, resume=args.resume, dashboard=not args.no_dashboard,
+                                 host=args.host, port_base=args.port_base, max_restarts=args.max_restarts,
+                                 keys=args.keys)
+
+    return _run("higher-cluster", go)
+
+
+def learner_main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser("higher-learner", description="The learner: replay, DQN, weights, the run's config.")
+    add_config_flags(p)
+    _network_flags(p)
+    p.add_argument("--config", default=None, help="a config.json to run instead of --preset/--world/--set")
+    p.add_argument("--run-dir", required=True)
+    p.add_argument("--resume", action="store_true")
+    args = p.parse_args(argv)
+
+    def go() -> int:
+        from higher_dist.config import from_dict
+        from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints
+        from higher_dist.roles.learner import run_learner
+
+        if args.config:
+            try:
+                data = json.loads(open(args.config).read())
+            except (OSError, json.JSONDecodeError) as e:
+                raise ConfigError(f"--config {args.config}: cannot read it ({e})") from None
+            cfg = from_dict(data)
+        else:
+            cfg = config_from_args(args)
+        endpoints = Endpoints.from_base(args.host, args.port_base or DEFAULT_BASE_PORT)
+        return run_learner(cfg, endpoints, args.run_dir, resume=args.resume, bind_host=args.bind_host,
+                           keys=args.keys)
+
+    return _run("higher-learner", go)
+
+
+def _role_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--learner", required=True, help="the learner's control endpoint, tcp://HOST:PORT")
+    p.add_argument("--keys", default=None, help="CURVE keys folder (from higher-keys)")
+    p.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: the run's)")
+
+
+def relabeler_main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser("higher-relabeler", description="The relabeler: instruction generator service.")
+    _role_flags(p)
+    p.add_argument("--bind-host", default=None, help="interface to bind its episodes socket")
+    p.add_argument("--state-dir", default=None, help="where its checkpoint goes (default: the run dir)")
+    p.add_argument("--resume", action="store_true")
+    args = p.parse_args(argv)
+
+    def go() -> int:
+        from higher_dist.roles.relabeler import run_relabeler
+
+        return run_relabeler(args.learner, state_dir=args.state_dir, resume=args.resume,
+                             bind_host=args.bind_host, keys=args.keys, threads=args.threads)
+
+    return _run("higher-relabeler", go)
+
+
+def actor_main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser("higher-actor", description="An actor: B environments, epsilon-greedy.")
+    _role_flags(p)
+    p.add_argument("--actor-id", type=int, default=None, help="fixed index (sets its epsilon); default: assigned")
+    args = p.parse_args(argv)
+
+    def go() -> int:
+        from higher_dist.roles.actor import run_actor
+
+        return run_actor(args.learner, actor_id=args.actor_id, keys=args.keys, threads=args.threads)
+
+    return _run("higher-actor", go)
+
+
+def dashboard_main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser("higher-dashboard", description="Attach a live dashboard to a running cluster.")
+    p.add_argument("--learner", required=True, help="the learner's control endpoint, tcp://HOST:PORT")
+    p.add_argument("--seconds", type=float, default=None, help="exit after this long")
+    args = p.parse_args(argv)
+
+    def go() -> int:
+        from higher_dist.launch.topology import Endpoints
+        from higher_dist.roles.dashboard import run_dashboard
+
+        return run_dashboard(Endpoints.from_control(args.learner).telemetry, stop_after_s=args.seconds)
+
+    return _run("higher-dashboard", go)
+
+
+def run_main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser("higher-run", description="All components in one process (debugging, tests).")
+    add_config_flags(p)
+    p.add_argument("--run-dir", required=True)
+    p.add_argument("--metrics-every", type=_positive_int, default=10_000, help="frames between metric lines")
+    args = p.parse_args(argv)
+
+    def go() -> int:
+        import torch
+
+        from higher_dist.learning.runner import SingleProcessRunner
+        from higher_dist.rundir import RunDir
+
+        cfg = config_from_args(args)
+        torch.set_num_threads(cfg.torch_threads)
+        rd = RunDir(args.run_dir)
+        rd.write_config(cfg)
+
+        def log(record: dict) -> None:
+            rd.append_metrics(record)
+            print(json.dumps(record), flush=True)
+
+        SingleProcessRunner(cfg, log=log).run(metrics_every=args.metrics_every)
+        return 0
+
+    return _run("higher-run", go)
+
+
+def bench_main(argv: list[str] | None = None) -> int:
+    from higher_dist.bench import main
+
+    return main(sys.argv[1:] if argv is None else argv)
+
+
+def plot_main(argv: list[str] | None = None) -> int:
+    from higher_dist.plot import main
+
+    return main(sys.argv[1:] if argv is None else argv)
+
+
+def keys_main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser("higher-keys", description="Make CURVE key pairs for a multi-host cluster.")
+    p.add_argument("dir", help="folder to write server and client keys into")
+    args = p.parse_args(argv)
+    from higher_dist.wire.security import generate_keys
+
+    generate_keys(args.dir)
+    print(f"keys written to {args.dir}")
+    return 0

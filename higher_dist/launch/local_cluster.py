@@ -1,0 +1,203 @@
+"""`higher-cluster`: start every role on this machine as its own process and supervise them.
+
+A role that dies is restarted with exponential backoff (the learner and the relabeler with --resume,
+so they continue from their checkpoints); after `max_restarts` crashes of one role the whole cluster is
+stopped with a message naming it. Ctrl-C or SIGTERM stops every role cleanly: each gets SIGTERM, writes
+its final checkpoint and exits; whatever is still alive after a grace period is killed, so no process
+is left behind. The learner ends the run when the frame budget is reached (exit 0).
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from higher_dist.config import Config
+from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints
+from higher_dist.rundir import RunDir, read_metrics
+
+GRACE_S = 20.0  # time each role gets to checkpoint and exit after SIGTERM
+
+
+@dataclass
+class RoleProcess:
+    name: str
+    argv: list[str]
+    log_path: Path
+    essential: bool = True  # the dashboard is not: it is never restarted
+    proc: subprocess.Popen | None = None
+    restarts: int = 0
+    next_start: float = 0.0
+    crash_times: list[float] = field(default_factory=list)
+
+    def start(self, extra_env: dict[str, str] | None = None, log_to_file: bool = True) -> None:
+        env = dict(os.environ, HIGHER_RESTARTS=str(self.restarts), **(extra_env or {}))
+        out = open(self.log_path, "ab") if log_to_file else None
+        self.proc = subprocess.Popen(self.argv, stdout=out, stderr=subprocess.STDOUT if out else None, env=env)
+        if out:
+            out.close()  # the child holds its own descriptor
+
+
+def _cli(role: str, *args: str) -> list[str]:
+    return [sys.executable, "-c", f"import sys; from higher_dist.cli import {role}_main as m; sys.exit(m())", *args]
+
+
+def build_roles(cfg: Config, run_dir: RunDir, endpoints: Endpoints, resume: bool, dashboard: bool,
+                keys: str | None) -> list[RoleProcess]:
+    logs = run_dir.path / "logs"
+    logs.mkdir(exist_ok=True)
+    requested = run_dir.path / "config.requested.json"
+    requested.write_text(cfg.to_json())
+    host, port = endpoints.control.rsplit(":", 1)
+    security = ["--keys", keys] if keys else []
+    learner = _cli("learner", "--config", str(requested), "--run-dir", str(run_dir.path),
+                   "--host", host.replace("tcp://", ""), "--port-base", port, *security,
+                   *(["--resume"] if resume else []))
+    relabeler = _cli("relabeler", "--learner", endpoints.control, "--state-dir", str(run_dir.path),
+                     *security, *(["--resume"] if resume else []))
+    roles = [RoleProcess("learner", learner, logs / "learner.log"),
+             RoleProcess("relabeler", relabeler, logs / "relabeler.log")]
+    for i in range(cfg.actors):
+        argv = _cli("actor", "--learner", endpoints.control, "--actor-id", str(i), *security)
+        roles.append(RoleProcess(f"actor{i}", argv, logs / f"actor{i}.log"))
+    if dashboard:
+        roles.append(RoleProcess("dashboard", _cli("dashboard", "--learner", endpoints.control),
+                                 logs / "dashboard.log", essential=False))
+    return roles
+
+
+class Supervisor:
+    def __init__(self, roles: list[RoleProcess], max_restarts: int, run_dir: RunDir, quiet: bool):
+        self.roles = roles
+        self.max_restarts = max_restarts
+        self.run_dir = run_dir
+        self.quiet = quiet  # a dashboard owns the terminal
+        self.stopping = False
+        self.exit_code = 0
+
+    def say(self, text: str) -> None:
+        line = f"[higher-cluster {time.strftime('%H:%M:%S')}] {text}"
+        with open(self.run_dir.path / "logs" / "cluster.log", "a") as f:
+            f.write(line + "\n")
+        if not self.quiet:
+            print(line, flush=True)
+
+    def start_all(self) -> None:
+        for i, role in enumerate(self.roles):
+            role.start(log_to_file=role.name != "dashboard")
+            if i == 0:
+                time.sleep(0.5)  # the learner binds first, so others' first hello finds it
+
+    def poll(self) -> bool:
+        """One supervision pass; False once the run is over."""
+        now = time.time()
+        for role in self.roles:
+            if role.proc is None:
+                if now >= role.next_start and not self.stopping:
+                    self.say(f"restarting {role.name} (restart {role.restarts})")
+                    if role.name in ("learner", "relabeler") and "--resume" not in role.argv:
+                        role.argv.append("--resume")
+                    role.start(log_to_file=role.name != "dashboard")
+                continue
+            code = role.proc.poll()
+            if code is None:
+                continue
+            role.proc = None
+            if role.name == "learner" and code == 0:
+                self.say("learner finished the run")
+                return False
+            if code == 0 and role.name != "learner":
+                # A role that was told to stop (end of run) exits 0: not a crash, nothing to restart.
+                role.next_start = float("inf")
+                continue
+            if not role.essential:
+                if code != 0:
+                    self.say(f"{role.name} exited with {code}; the run goes on without it")
+                role.next_start = float("inf")
+                continue
+            role.crash_times.append(now)
+            role.restarts += 1
+            if role.restarts > self.max_restarts:
+                self.say(f"giving up: {role.name} crashed {role.restarts} times (last exit code {code}); "
+                         f"see {role.log_path}")
+                self.exit_code = 1
+                return False
+            backoff = min(2.0 ** (role.restarts - 1), 30.0)
+            self.say(f"{role.name} exited with code {code}; restart in {backoff:.0f} s")
+            role.next_start = now + backoff
+        return True
+
+    def stop_all(self) -> None:
+        self.stopping = True
+        # Actors first, then the relabeler, the learner last: it writes the final checkpoint.
+        order = [r for r in self.roles if r.name.startswith("actor") or r.name == "dashboard"]
+        order += [r for r in self.roles if r.name == "relabeler"] + [r for r in self.roles if r.name == "learner"]
+        for role in order:
+            if role.proc is not None and role.proc.poll() is None:
+                role.proc.send_signal(signal.SIGTERM)
+        deadline = time.time() + GRACE_S
+        for role in order:
+            if role.proc is None:
+                continue
+            try:
+                role.proc.wait(timeout=max(deadline - time.time(), 0.1))
+            except subprocess.TimeoutExpired:
+                self.say(f"{role.name} did not stop in time; killing it")
+                role.proc.kill()
+                role.proc.wait()
+
+
+def run_local_cluster(cfg: Config, run_dir: str, resume: bool = False, dashboard: bool = True,
+                      host: str = "127.0.0.1", port_base: int | None = None, max_restarts: int = 5,
+                      keys: str | None = None) -> int:
+    rd = RunDir(run_dir)
+    if resume and rd.load_checkpoint("learner") is None:
+        raise ValueError(f"--resume: no learner checkpoint in {rd.path}")
+    endpoints = Endpoints.from_base(host, port_base or DEFAULT_BASE_PORT)
+    dashboard = dashboard and sys.stdout.isatty()
+    sup = Supervisor(build_roles(cfg, rd, endpoints, resume, dashboard, keys), max_restarts, rd, quiet=dashboard)
+    stop_requested = []
+
+    def on_signal(signum, _frame):
+        stop_requested.append(signum)
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    sup.say(f"run dir {rd.path}; control {endpoints.control}; {cfg.actors} actors x {cfg.envs_per_actor} envs; "
+            f"preset {cfg.preset} on the {cfg.world.name} world; {cfg.frames} frames")
+    sup.start_all()
+    last_print, seen = 0.0, 0
+    try:
+        while not stop_requested and sup.poll():
+            time.sleep(0.2)
+            if not dashboard and time.time() - last_print > max(cfg.stats_every_s, 2.0):
+                last_print = time.time()
+                records = read_metrics(rd.metrics_path)
+                if len(records) > seen:
+                    seen = len(records)
+                    sup.say(_summary(records[-1]))
+    finally:
+        sup.stop_all()
+        for s, handler in old.items():
+            signal.signal(s, handler)
+    if stop_requested:
+        sup.say("stopped on request; checkpoints written")
+    records = read_metrics(rd.metrics_path)
+    if records:
+        print(json.dumps({k: v for k, v in records[-1].items() if k != "roles"}))
+    return sup.exit_code
+
+
+def _summary(r: dict) -> str:
+    def f(key, fmt="{}"):
+        v = r.get(key)
+        return "-" if v is None else fmt.format(v)
+
+    return (f"frames {f('frames')} | {f('frames_per_s', '{:.0f}')} fps | updates {f('updates')} "
+            f"({f('updates_per_s', '{:.1f}')}/s) | success {f('success_rate_train', '{:.2f}')} | "
+            f"relabelled {f('relabelled_episodes')} | gen acc {f('generator_val_accuracy', '{:.2f}')} | "
+            f"rejected {f('rejected_messages')}")

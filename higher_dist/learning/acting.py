@@ -1,0 +1,115 @@
+"""Acting: a batched world, an epsilon-greedy policy and the bookkeeping that turns steps into episodes.
+
+The collector keeps, per environment, the frames, actions and rewards of the running episode in
+preallocated arrays (no per-step Python lists), and the last `frame_stack` views as the policy's input.
+The same collector serves the cluster's actors, the single-process runner and evaluation.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+
+from higher_dist.config import NetworkConfig, WorldConfig
+from higher_dist.learning.episode import Episode
+from higher_dist.learning.exploration import epsilon_greedy
+from higher_dist.learning.networks import QNetwork
+from higher_dist.world.grid import BatchedFetchAttr
+from higher_dist.world.language import VOCAB
+
+QFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+class EpisodeCollector:
+    def __init__(self, world_cfg: WorldConfig, n_envs: int, frame_stack: int, seed: int,
+                 actor_id: int = 0, goal_set: str = "train"):
+        self.world = BatchedFetchAttr(world_cfg, n_envs, seed, goal_set=goal_set)
+        self.n_envs, self.frame_stack, self.actor_id = n_envs, frame_stack, actor_id
+        v = world_cfg.view_size
+        t_max = world_cfg.max_steps
+        self._frames = np.zeros((n_envs, t_max + 1, v, v, 4), np.uint8)
+        self._actions = np.zeros((n_envs, t_max), np.uint8)
+        self._rewards = np.zeros((n_envs, t_max), np.float32)
+        self._t = np.zeros(n_envs, np.int64)
+        view, mission = self.world.reset()
+        self.mission = mission.copy()
+        self._frames[:, 0] = view
+        self.stack = np.repeat(view[:, None], frame_stack, axis=1)
+        self.frames_done = 0
+        self.weights_version = 0
+
+    def observation(self) -> tuple[np.ndarray, np.ndarray]:
+        """The policy's input: (B, k, V, V, 4) uint8 frame stacks and (B, L) mission tokens."""
+        return self.stack, self.mission
+
+    def step(self, actions: np.ndarray) -> list[Episode]:
+        """Step every environment once; return the episodes that finished on this step."""
+        res = self.world.step(actions)
+        rows = np.arange(self.n_envs)
+        self._actions[rows, self._t] = actions
+        self._rewards[rows, self._t] = res.reward
+        self._t += 1
+        self._frames[rows, self._t] = res.final_view
+        self.frames_done += self.n_envs
+        done = np.flatnonzero(res.terminated | res.truncated)
+        finished = [self._episode(i, res) for i in done]
+        # Shift the frame stacks; a fresh episode starts with its first view repeated.
+        self.stack[:, :-1] = self.stack[:, 1:]
+        self.stack[:, -1] = res.view
+        if done.size:
+            self.stack[done] = res.view[done, None]
+            self._t[done] = 0
+            self._frames[done, 0] = res.view[done]
+        self.mission = res.mission.copy()
+        return finished
+
+    def _episode(self, i: int, res) -> Episode:
+        t = int(self._t[i])
+        return Episode(
+            frames=self._frames[i, : t + 1].copy(), actions=self._actions[i, :t].copy(),
+            rewards=self._rewards[i, :t].copy(), mission=res.mission_done[i].astype(np.int64),
+            outcome=int(res.outcome[i]), picked=res.picked[i].astype(np.int8).copy(),
+            goal=res.goal[i].astype(np.int8).copy(), actor_id=self.actor_id,
+            weights_version=self.weights_version,
+        )
+
+
+class TorchQFunction:
+    """Batched greedy Q-values from a QNetwork whose weights arrive as numpy arrays (actors, eval)."""
+
+    def __init__(self, net_cfg: NetworkConfig, device: str = "cpu"):
+        from higher_dist.learning.dqn import load_weights_numpy
+
+        self._load = load_weights_numpy
+        self.device = torch.device(device)
+        self.net = QNetwork(net_cfg, vocab_size=len(VOCAB)).to(self.device).eval()
+
+    def load(self, arrays: dict[str, np.ndarray]) -> None:
+        self._load(self.net, arrays)
+
+    @torch.no_grad()
+    def __call__(self, obs: np.ndarray, mission: np.ndarray) -> np.ndarray:
+        o = torch.from_numpy(np.ascontiguousarray(obs)).to(self.device)
+        m = torch.from_numpy(np.ascontiguousarray(mission)).long().to(self.device)
+        return self.net(o, m).float().cpu().numpy()
+
+
+def act(collector: EpisodeCollector, q_fn: QFunction, eps: np.ndarray, rng: np.random.Generator) -> list[Episode]:
+    """One epsilon-greedy step of every environment of the collector."""
+    obs, mission = collector.observation()
+    actions = epsilon_greedy(q_fn(obs, mission), eps, rng)
+    return collector.step(actions)
+
+
+def evaluate(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, episodes: int, goal_set: str,
+             seed: int, n_envs: int = 32) -> float:
+    """Greedy success rate over `episodes` episodes whose goals come from `goal_set` (train|heldout)."""
+    collector = EpisodeCollector(world_cfg, min(n_envs, episodes), frame_stack, seed, goal_set=goal_set)
+    rng = np.random.default_rng(seed)
+    zero = np.zeros(collector.n_envs)
+    results: list[int] = []
+    while len(results) < episodes:
+        for ep in act(collector, q_fn, zero, rng):
+            results.append(int(ep.outcome == 0))
+    return float(np.mean(results[:episodes]))

@@ -1,0 +1,181 @@
+"""Double DQN with n-step returns, Huber loss and importance weights; the learner that steps it.
+
+`dqn_loss` is a pure function of two Q-functions and a batch of tensors. `DQNLearner` owns the
+online/target networks and the optimizer and takes numpy batches from the replay, returning new
+priorities as data (the replay is updated by the caller).
+"""
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from higher_dist.config import DQNConfig, NetworkConfig
+from higher_dist.learning.networks import QNetwork, load_weights_numpy, weights_numpy
+
+
+class TransitionBatch(Protocol):
+    """What `DQNLearner.update` reads (the replay's batch satisfies it by duck typing).
+
+    reward is the n-step return already summed; discount is gamma^m for the m steps actually taken,
+    or 0 when the window ended at a terminal pick (a time-out keeps gamma^m: it bootstraps).
+    """
+
+    obs: np.ndarray  # (B, k, V, V, 4) uint8
+    mission: np.ndarray  # (B, L) int64, PAD-padded
+    action: np.ndarray  # (B,) int64
+    reward: np.ndarray  # (B,) float32
+    discount: np.ndarray  # (B,) float32
+    next_obs: np.ndarray  # (B, k, V, V, 4) uint8
+    weights: np.ndarray  # (B,) float32 importance weights
+
+
+def dqn_loss(
+    online: nn.Module,
+    target: nn.Module,
+    obs: torch.Tensor,
+    mission: torch.Tensor,
+    action: torch.Tensor,
+    reward: torch.Tensor,
+    discount: torch.Tensor,
+    next_obs: torch.Tensor,
+    weights: torch.Tensor,
+    huber_delta: float = 1.0,
+    double: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    """Importance-weighted Huber loss of the (double) DQN n-step TD error.
+
+    target y = reward + discount * Q_target(next_obs, a*), with a* = argmax Q_online(next_obs) when
+    `double` (decouples action choice from evaluation, curbing over-estimation) or argmax Q_target
+    otherwise. The mission is shared by obs and next_obs: it is the goal of the whole episode.
+    Returns (scalar loss, |td| detached as new priorities (B,), float metrics).
+    """
+    if hasattr(online, "encode_mission"):
+        # A QNetwork: encode the shared mission once and reuse it (detached) for next_obs.
+        text = online.encode_mission(mission)
+        q_all = online.q_values(obs, text)
+        online_next = lambda: online.q_values(next_obs, text.detach())  # noqa: E731
+    else:
+        q_all = online(obs, mission)
+        online_next = lambda: online(next_obs, mission)  # noqa: E731
+    q = q_all.gather(1, action.view(-1, 1)).squeeze(1)
+    with torch.no_grad():
+        q_next_target = target(next_obs, mission)
+        chooser = online_next() if double else q_next_target
+        best = chooser.argmax(dim=1, keepdim=True)
+        y = reward + discount * q_next_target.gather(1, best).squeeze(1)
+    per_sample = F.huber_loss(q, y, reduction="none", delta=huber_delta)
+    loss = (weights * per_sample).mean()
+    td_abs = (y - q).detach().abs()
+    metrics = {
+        "loss": float(loss.detach()),
+        "q_mean": float(q.detach().mean()),
+        "td_abs_mean": float(td_abs.mean()),
+        "target_mean": float(y.mean()),
+    }
+    return loss, td_abs, metrics
+
+
+class DQNLearner:
+    """Online and target Q-networks, Adam, and the target-update schedule."""
+
+    def __init__(self, net_cfg: NetworkConfig, dqn_cfg: DQNConfig, device: str = "cpu",
+                 vocab_size: int = 40, seed: int = 0):
+        if dqn_cfg.target_update not in ("period", "polyak"):
+            raise ValueError(f"target_update: must be period or polyak, got {dqn_cfg.target_update!r}")
+        self.net_cfg = net_cfg
+        self.cfg = dqn_cfg
+        self.device = torch.device(device)
+        torch.manual_seed(seed)
+        self.online = QNetwork(net_cfg, vocab_size=vocab_size).to(self.device)
+        self.target = QNetwork(net_cfg, vocab_size=vocab_size).to(self.device)
+        self.target.load_state_dict(self.online.state_dict())
+        self.target.requires_grad_(False)
+        self.target.eval()
+        self._online_params = list(self.online.parameters())
+        self._target_params = list(self.target.parameters())
+        # foreach: one multi-tensor kernel per Adam step instead of a loop over ~20 small tensors.
+        self.optimizer = torch.optim.Adam(self._online_params, lr=dqn_cfg.lr, eps=dqn_cfg.adam_eps,
+                                          foreach=True)
+        self.updates = 0
+
+    def _tensors(self, batch: Any) -> dict[str, torch.Tensor]:
+        dev = self.device
+
+        def t(x: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
+            # from_numpy shares memory (no copy on CPU); `.to` converts only where the dtype differs.
+            return torch.from_numpy(np.ascontiguousarray(x)).to(dev, dtype)
+
+        return {
+            "obs": t(batch.obs, torch.uint8),
+            "mission": t(batch.mission, torch.long),
+            "action": t(batch.action, torch.long),
+            "reward": t(batch.reward, torch.float32),
+            "discount": t(batch.discount, torch.float32),
+            "next_obs": t(batch.next_obs, torch.uint8),
+            "weights": t(batch.weights, torch.float32),
+        }
+
+    def update(self, batch: Any) -> tuple[np.ndarray, dict[str, float]]:
+        """One gradient step on `batch` (see `TransitionBatch`); returns (new priorities (B,), metrics)."""
+        tensors = self._tensors(batch)
+        self.online.train()
+        loss, priorities, metrics = dqn_loss(self.online, self.target, huber_delta=self.cfg.huber_delta,
+                                             double=self.cfg.double, **tensors)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(self._online_params, self.cfg.grad_clip, foreach=True)
+        self.optimizer.step()
+        self.updates += 1
+        self._update_target()
+        metrics["grad_norm"] = float(grad_norm)
+        return priorities.cpu().numpy().astype(np.float32, copy=False), metrics
+
+    def _update_target(self) -> None:
+        if self.cfg.target_update == "period":
+            if self.updates % self.cfg.target_period == 0:
+                self.sync_target()
+        else:
+            with torch.no_grad():
+                # target <- target + tau * (online - target)
+                torch._foreach_lerp_(self._target_params, self._online_params, self.cfg.polyak_tau)
+
+    def sync_target(self) -> None:
+        """Hard copy online -> target."""
+        with torch.no_grad():
+            torch._foreach_copy_(self._target_params, self._online_params)
+
+    @torch.no_grad()
+    def greedy_q(self, obs: np.ndarray, mission: np.ndarray) -> np.ndarray:
+        """Online Q-values (B, 4) for numpy inputs, in eval mode, as numpy."""
+        self.online.eval()
+        q = self.online(torch.from_numpy(np.ascontiguousarray(obs)).to(self.device, torch.uint8),
+                        torch.from_numpy(np.ascontiguousarray(mission)).to(self.device, torch.long))
+        return q.cpu().numpy()
+
+    def weights_numpy(self) -> dict[str, np.ndarray]:
+        """The online network's weights as float32 CPU arrays, to publish to actors."""
+        return weights_numpy(self.online)
+
+    def load_weights_numpy(self, weights: dict[str, np.ndarray]) -> None:
+        """Load published weights into both networks (e.g. to warm-start)."""
+        load_weights_numpy(self.online, weights)
+        self.sync_target()
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything a checkpoint needs to resume learning exactly (RNG state is the caller's)."""
+        return {
+            "online": self.online.state_dict(),
+            "target": self.target.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "updates": self.updates,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.online.load_state_dict(state["online"])
+        self.target.load_state_dict(state["target"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.updates = int(state["updates"])

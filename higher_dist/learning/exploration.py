@@ -1,0 +1,65 @@
+"""Epsilon-greedy exploration: Ape-X per-slot epsilons or the paper's linear decay.
+
+Ape-X (Horgan et al. 2018) gives exploring process i of N the fixed rate eps^(1 + alpha*i/(N-1)).
+Here the N "processes" are all env slots of all actors (n_actors * n_envs), not the actors: with only
+a couple of actors, one epsilon per actor would leave the whole system exploring at one or two rates,
+while spreading the ladder over the env slots lets even a single actor act at many rates at once.
+Slots are dealt round-robin (env j of actor a gets rung j*n_actors + a), so every actor gets a spread
+from the most to the least exploratory rungs rather than one actor getting all the greedy ones.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from higher_dist.config import ExplorationConfig
+
+__all__ = ["apex_epsilons", "linear_epsilon", "actor_epsilons", "epsilon_greedy"]
+
+
+def apex_epsilons(n: int, eps_base: float, alpha: float) -> np.ndarray:
+    """eps_i = eps_base ** (1 + alpha * i / (n - 1)) for i in 0..n-1; [eps_base] when n == 1."""
+    if n < 1:
+        raise ValueError(f"apex_epsilons needs n >= 1, got {n}")
+    if n == 1:
+        return np.array([eps_base], dtype=np.float64)
+    return float(eps_base) ** (1.0 + alpha * np.arange(n, dtype=np.float64) / (n - 1))
+
+
+def linear_epsilon(frame: int, cfg: ExplorationConfig) -> float:
+    """eps_start at frame 0, eps_end at decay_frames and after, linear in between."""
+    if cfg.decay_frames <= 0:
+        return float(cfg.eps_end)
+    frac = min(1.0, max(0.0, frame / cfg.decay_frames))
+    return float(cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start))
+
+
+def actor_epsilons(cfg: ExplorationConfig, actor_index: int, n_actors: int, n_envs: int,
+                   frame: int) -> np.ndarray:
+    """The epsilon of each of one actor's n_envs environments, shape (n_envs,).
+
+    apex: fixed rungs of a ladder spread over all n_actors * n_envs env slots (see the module notes);
+    `frame` is unused. linear: every env uses the decayed epsilon at `frame` (the run's env frames).
+    """
+    if not 0 <= actor_index < n_actors:
+        raise ValueError(f"actor_index must be in [0, {n_actors}), got {actor_index}")
+    if n_envs < 1:
+        raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+    if cfg.kind == "apex":
+        ladder = apex_epsilons(n_actors * n_envs, cfg.eps_base, cfg.apex_alpha)
+        return ladder[np.arange(n_envs) * n_actors + actor_index]
+    if cfg.kind == "linear":
+        return np.full(n_envs, linear_epsilon(frame, cfg), dtype=np.float64)
+    raise ValueError(f"unknown exploration kind {cfg.kind!r}; choose apex or linear")
+
+
+def epsilon_greedy(q_values: np.ndarray, eps: np.ndarray | float, rng: np.random.Generator) -> np.ndarray:
+    """Per row: a uniform random action with probability eps[b], else argmax (first on ties)."""
+    q = np.asarray(q_values)
+    if q.ndim != 2:
+        raise ValueError(f"q_values must be (B, A), got shape {q.shape}")
+    batch, n_actions = q.shape
+    eps = np.broadcast_to(np.asarray(eps, dtype=np.float64), (batch,))
+    greedy = q.argmax(axis=1)
+    explore = rng.random(batch) < eps
+    random_actions = rng.integers(0, n_actions, size=batch)
+    return np.where(explore, random_actions, greedy).astype(np.int64)

@@ -1,0 +1,227 @@
+"""The instruction generator of HIGhER: view before the final pick -> the instruction it fulfilled.
+
+`InstructionGenerator` encodes ONE 7x7x4 view and decodes words with a GRU; `GeneratorTrainer`
+owns the model, its optimizer and its dataset (`generator_data.GeneratorDataset`), trains it by
+teacher-forced cross-entropy, measures validation accuracy semantically (the described object,
+not the surface words) and decides when the generator may be trusted (the gate).
+
+Token conventions (docs/architecture.md): a mission is `(MISSION_LEN,)` word ids PAD-padded, without
+BEG/END; the decoder reads `BEG w1..wn` and is trained to emit `w1..wn END`.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from higher_dist.config import GeneratorConfig
+from higher_dist.learning.episode import Episode
+from higher_dist.learning.generator_data import GeneratorDataset, parse_many, semantic_accuracy
+from higher_dist.learning.networks import ViewEncoder
+from higher_dist.world.language import BEG, END, MISSION_LEN, PAD
+
+# The picked object sits in the cell right in front of the agent: the agent is at the bottom centre
+# (row V-1, column V//2) facing up, so the cell in front is (V-2, V//2).
+def front_cell(view_size: int) -> tuple[int, int]:
+    return view_size - 2, view_size // 2
+
+
+GRAD_CLIP = 5.0  # GRU decoders occasionally spike early in training; clipping keeps Adam steady
+EVAL_CHUNK = 1024  # validation is decoded in chunks to bound memory
+
+
+class InstructionGenerator(nn.Module):
+    """Conv encoder of one view + GRU decoder over the vocabulary.
+
+    The encoder is the Q-network's `ViewEncoder` (per-channel embeddings summed, then 3x3 convs).
+    Besides the conv features, the summed embedding of the front cell is fed straight into the
+    context vector: the object to describe is always there, and giving its additive attribute code
+    a direct path lets the decoder read each attribute independently of the others, which is what
+    makes it describe attribute combinations it never saw (the held-out goals). The conv path still
+    sees the whole view (walls, distractors) as in the paper.
+    """
+
+    def __init__(self, cfg: GeneratorConfig, vocab_size: int, view_size: int = 7):
+        super().__init__()
+        self.cfg, self.vocab_size, self.view_size = cfg, int(vocab_size), view_size
+        self.front = front_cell(view_size)
+        self.encoder = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), in_frames=1, view_size=view_size)
+        self.context = nn.Linear(self.encoder.out_dim + cfg.embed_dim, cfg.hidden)
+        self.init_hidden = nn.Linear(cfg.hidden, cfg.hidden)
+        self.word_embed = nn.Embedding(vocab_size, cfg.word_embed_dim, padding_idx=PAD)
+        # The context is fed at every step as well as through the initial state, so the decoder never
+        # has to carry the object's attributes across the prefix words in its state alone.
+        self.gru = nn.GRU(cfg.word_embed_dim + cfg.hidden, cfg.hidden, batch_first=True)
+        self.out = nn.Linear(cfg.hidden, vocab_size)
+        # PAD and BEG are never emitted: PAD would end a mission early without END, BEG is input only.
+        banned = torch.zeros(vocab_size, dtype=torch.bool)
+        banned[[PAD, BEG]] = True
+        self.register_buffer("banned", banned, persistent=False)
+
+    def encode(self, views: torch.Tensor) -> torch.Tensor:
+        """(B, V, V, 4) integer views -> (B, hidden) context."""
+        if views.dim() != 4 or views.shape[1:] != (self.view_size, self.view_size, 4):
+            raise ValueError(f"views: expected (B, {self.view_size}, {self.view_size}, 4), got {tuple(views.shape)}")
+        views = views.long()
+        maps = self.encoder(views[:, None]).flatten(1)
+        r, c = self.front
+        cell = F.embedding_bag(views[:, r, c] + self.encoder.offsets, self.encoder.embed.weight, mode="sum")
+        return F.relu(self.context(torch.cat([maps, cell], dim=1)))
+
+    def _step(self, tokens: torch.Tensor, ctx: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Inputs (B, T) tokens -> logits (B, T, vocab) and the new hidden state."""
+        x = torch.cat([self.word_embed(tokens), ctx[:, None].expand(-1, tokens.shape[1], -1)], dim=2)
+        out, h = self.gru(x, h)
+        return self.out(out), h
+
+    def forward(self, views: torch.Tensor, missions: torch.Tensor) -> torch.Tensor:
+        """Teacher-forced logits (B, L+1, vocab) for the targets `w1..wn END` given inputs `BEG w1..wn`."""
+        ctx = self.encode(views)
+        h0 = torch.tanh(self.init_hidden(ctx))[None]
+        inputs = torch.cat([torch.full_like(missions[:, :1], BEG), missions], dim=1)
+        logits, _ = self._step(inputs, ctx, h0)
+        return logits
+
+    def loss(self, views: torch.Tensor, missions: torch.Tensor) -> torch.Tensor:
+        """Mean cross-entropy over the real target tokens (words and END; PAD ignored)."""
+        return F.cross_entropy(self(views, missions).flatten(0, 1), decoder_targets(missions).flatten(),
+                               ignore_index=PAD)
+
+    @torch.no_grad()
+    def _decode(self, views: torch.Tensor, max_len: int, choose) -> torch.Tensor:
+        b = views.shape[0]
+        ctx = self.encode(views)
+        h = torch.tanh(self.init_hidden(ctx))[None]
+        token = torch.full((b, 1), BEG, dtype=torch.long, device=views.device)
+        words = torch.full((b, max(max_len, MISSION_LEN)), PAD, dtype=torch.long, device=views.device)
+        done = torch.zeros(b, dtype=torch.bool, device=views.device)
+        for t in range(max_len):
+            logits, h = self._step(token, ctx, h)
+            logits = logits[:, 0].masked_fill(self.banned, -math.inf)
+            nxt = choose(logits)
+            done = done | (nxt == END)
+            # A finished row keeps PAD; END itself is not part of the mission encoding.
+            words[:, t] = torch.where(done, torch.full_like(nxt, PAD), nxt)
+            if bool(done.all()):
+                break
+            token = nxt[:, None]
+        # An output that never ended is cut to the mission length; the parser judges it.
+        return words[:, :MISSION_LEN]
+
+    def greedy(self, views: torch.Tensor, max_len: int | None = None) -> torch.Tensor:
+        """(B, MISSION_LEN) int64 word tokens, PAD-padded; at most `max_len` decoding steps."""
+        return self._decode(views, self.cfg.max_len if max_len is None else max_len,
+                            lambda logits: logits.argmax(dim=1))
+
+    def sample(self, views: torch.Tensor, max_len: int | None = None,
+               generator: torch.Generator | None = None, temperature: float = 1.0) -> torch.Tensor:
+        """Like `greedy` but each word is drawn from softmax(logits / temperature)."""
+        if temperature <= 0:
+            return self.greedy(views, max_len)
+
+        def choose(logits: torch.Tensor) -> torch.Tensor:
+            probs = torch.softmax(logits / temperature, dim=1)
+            return torch.multinomial(probs, 1, generator=generator)[:, 0]
+
+        return self._decode(views, self.cfg.max_len if max_len is None else max_len, choose)
+
+
+def decoder_targets(missions: torch.Tensor) -> torch.Tensor:
+    """(B, L) PAD-padded words -> (B, L+1) targets `w1..wn END PAD..`."""
+    lengths = (missions != PAD).sum(dim=1)
+    targets = torch.cat([missions, torch.full_like(missions[:, :1], PAD)], dim=1)
+    targets[torch.arange(missions.shape[0], device=missions.device), lengths] = END
+    return targets
+
+
+class GeneratorTrainer:
+    """Model + Adam + dataset, with the gate that says when the generator may relabel."""
+
+    def __init__(self, cfg: GeneratorConfig, vocab_size: int, seed: int, device: str = "cpu", view_size: int = 7):
+        self.cfg, self.device = cfg, torch.device(device)
+        # A private RNG stream for the initial weights: building a trainer leaves the global torch
+        # RNG untouched, and two trainers with one seed start identical.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.model = InstructionGenerator(cfg, vocab_size, view_size).to(self.device)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
+        self.dataset = GeneratorDataset(cfg.capacity, cfg.val_fraction, seed, view_size)
+        self.rng = np.random.default_rng(seed)
+        self.steps = 0  # gradient steps taken
+        self.evaluations = 0
+        self.val_accuracy = 0.0  # exact match at the last evaluate(); 0 until the first one
+        self.last_eval: dict[str, float] = {}
+        self.last_loss = float("nan")
+
+    def observe_episodes(self, episodes: list[Episode]) -> int:
+        """Add the pairs of the successful original episodes; returns how many were kept."""
+        return sum(self.dataset.add_episode(ep) for ep in episodes)
+
+    def train_steps(self, n: int) -> float:
+        """`n` Adam steps on minibatches of training pairs; mean loss (nan if nothing to train on)."""
+        if n <= 0 or self.dataset.n_train == 0:
+            return float("nan")
+        self.model.train()
+        total = 0.0
+        for _ in range(n):
+            views, tokens = self.dataset.sample_train(self.cfg.batch_size, self.rng)
+            loss = self.model.loss(torch.as_tensor(views, device=self.device),
+                                   torch.as_tensor(tokens, device=self.device))
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            nn.utils.clip_grad_norm_(self.model.parameters(), GRAD_CLIP)
+            self.optimizer.step()
+            total += float(loss.detach())
+        self.steps += n
+        self.last_loss = total / n
+        return self.last_loss
+
+    def generate(self, views: np.ndarray) -> np.ndarray:
+        """Greedy instructions (N, MISSION_LEN) int64 for (N, V, V, 4) views."""
+        views = np.asarray(views)
+        if views.shape[0] == 0:
+            return np.zeros((0, MISSION_LEN), np.int64)
+        self.model.eval()
+        chunks = [self.model.greedy(torch.as_tensor(views[i:i + EVAL_CHUNK], device=self.device)).cpu().numpy()
+                  for i in range(0, views.shape[0], EVAL_CHUNK)]
+        return np.concatenate(chunks).astype(np.int64)
+
+    def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray) -> dict[str, float]:
+        """Semantic accuracy of the greedy outputs on given pairs (targets parsed from `tokens`)."""
+        true_attrs, _ = parse_many(tokens)
+        return semantic_accuracy(self.generate(views), true_attrs)
+
+    def evaluate(self) -> dict[str, float]:
+        """Accuracy on the validation split; its exact match becomes `val_accuracy` (the gate's input)."""
+        result = self.evaluate_pairs(*self.dataset.validation())
+        self.val_accuracy = result["exact"]
+        self.last_eval = result
+        self.evaluations += 1
+        return result
+
+    @property
+    def gate_open(self) -> bool:
+        """Enough pairs, and (unless min_accuracy is 0, the paper's ungated variant) accurate enough."""
+        if len(self.dataset) < self.cfg.n_min:
+            return False
+        return self.cfg.min_accuracy <= 0 or self.val_accuracy >= self.cfg.min_accuracy
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+                "dataset": self.dataset.state_dict(), "rng": self.rng.bit_generator.state,
+                "steps": self.steps, "evaluations": self.evaluations, "val_accuracy": self.val_accuracy,
+                "last_eval": dict(self.last_eval), "last_loss": self.last_loss}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.dataset.load_state_dict(state["dataset"])
+        self.rng.bit_generator.state = state["rng"]
+        self.steps, self.evaluations = int(state["steps"]), int(state["evaluations"])
+        self.val_accuracy = float(state["val_accuracy"])
+        self.last_eval = dict(state["last_eval"])
+        self.last_loss = float(state["last_loss"])

@@ -1,0 +1,115 @@
+"""What the learner does, without any transport: take episodes into prioritized replay, run DQN updates
+at the configured samples-per-insert ratio, and count what it saw. The single-process runner and the
+cluster's learner role both drive this one object."""
+from __future__ import annotations
+
+import time
+from collections import deque
+
+import numpy as np
+
+from higher_dist.config import Config
+from higher_dist.learning.dqn import DQNLearner
+from higher_dist.learning.episode import SUCCESS, Episode
+from higher_dist.learning.rate_limiter import SamplesPerInsertLimiter
+from higher_dist.learning.replay import PrioritizedReplay
+from higher_dist.world.language import VOCAB
+
+
+class LearnerCore:
+    def __init__(self, cfg: Config, device: str | None = None):
+        self.cfg = cfg
+        self.replay = PrioritizedReplay(cfg.replay, frame_stack=cfg.network.frame_stack,
+                                        n_step=cfg.dqn.n_step, gamma=cfg.dqn.gamma,
+                                        view_size=cfg.world.view_size, seed=cfg.seed)
+        self.dqn = DQNLearner(cfg.network, cfg.dqn, device=device or cfg.device, vocab_size=len(VOCAB),
+                              seed=cfg.seed)
+        self.limiter = SamplesPerInsertLimiter(cfg.replay.samples_per_insert, cfg.replay.min_size)
+        self.frames = 0  # env frames the actors reported (original episodes only)
+        self.episodes = 0
+        self.relabelled_episodes = 0
+        self.updates = 0
+        self.recent_success: deque[int] = deque(maxlen=1000)  # training success over original episodes
+        self.last_metrics: dict[str, float] = {}
+        self._update_times: deque[float] = deque(maxlen=200)
+
+    # -- experience -------------------------------------------------------------------------------
+    def add_episodes(self, episodes: list[Episode]) -> None:
+        for ep in episodes:
+            self.replay.add_episode(ep)
+            self.limiter.record_insert(ep.length)
+            if ep.relabelled:
+                self.relabelled_episodes += 1
+            else:
+                self.frames += ep.length
+                self.episodes += 1
+                self.recent_success.append(int(ep.outcome == SUCCESS))
+
+    def wants_experience(self) -> bool:
+        return self.limiter.can_insert()
+
+    # -- learning ---------------------------------------------------------------------------------
+    def can_update(self) -> bool:
+        return self.limiter.can_sample(len(self.replay), self.cfg.dqn.batch_size)
+
+    def update(self) -> dict[str, float]:
+        """One prioritized DQN update; priorities come back from the loss as data."""
+        batch_size = self.cfg.dqn.batch_size
+        beta = self.replay.beta_at(self.frames)
+        batch = self.replay.sample(batch_size, beta)
+        priorities, metrics = self.dqn.update(batch)
+        self.replay.update_priorities(batch.indices, priorities, batch.generations)
+        self.limiter.record_sample(batch_size)
+        self.updates += 1
+        self._update_times.append(time.perf_counter())
+        self.last_metrics = metrics
+        return metrics
+
+    def train_available(self, max_updates: int) -> int:
+        """Run updates while the ratio allows, at most `max_updates`; returns how many ran."""
+        n = 0
+        while n < max_updates and self.can_update():
+            self.update()
+            n += 1
+        return n
+
+    # -- reporting --------------------------------------------------------------------------------
+    @property
+    def success_rate_train(self) -> float:
+        return float(np.mean(self.recent_success)) if self.recent_success else 0.0
+
+    def metrics(self) -> dict[str, float]:
+        out = {
+            "frames": self.frames, "updates": self.updates, "episodes": self.episodes,
+            "relabelled_episodes": self.relabelled_episodes,
+            "success_rate_train": round(self.success_rate_train, 4),
+            "replay_size": len(self.replay), "replay_ratio": round(self.limiter.ratio, 3),
+        }
+        for origin, count in self.replay.composition().items():
+            out[f"replay_{origin}"] = int(count)
+        out.update({k: round(float(v), 5) for k, v in self.last_metrics.items()})
+        return out
+
+    def state_dict(self, with_replay: bool = False) -> dict:
+        state = {
+            "dqn": self.dqn.state_dict(), "limiter": self.limiter.state_dict(),
+            "counters": {"frames": self.frames, "episodes": self.episodes, "updates": self.updates,
+                         "relabelled_episodes": self.relabelled_episodes},
+            "recent_success": list(self.recent_success),
+        }
+        if with_replay:
+            state["replay"] = self.replay.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        self.dqn.load_state_dict(state["dqn"])
+        self.limiter.load_state_dict(state["limiter"])
+        c = state["counters"]
+        self.frames, self.episodes, self.updates = c["frames"], c["episodes"], c["updates"]
+        self.relabelled_episodes = c["relabelled_episodes"]
+        self.recent_success.extend(state.get("recent_success", []))
+        if "replay" in state:
+            self.replay.load_state_dict(state["replay"])
+        else:
+            # Without the replay the ratio restarts from an empty buffer.
+            self.limiter.inserted = self.limiter.sampled = 0

@@ -1,0 +1,213 @@
+"""The Q-network: a view encoder, an instruction encoder and their fusion, over 4 actions.
+
+Inputs follow docs/architecture.md: a stack of k egocentric views `(B, k, 7, 7, 4)` uint8 with channels
+[kind, color, shade, size] and a PAD-padded mission `(B, L)` of word ids (PAD=0, words first).
+
+Sizes are kept lean on purpose: the learner must run thousands of samples per second on one CPU
+thread, and the 7x7 view with 10-token missions needs little capacity (see `higher-bench learner`).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from higher_dist.config import NetworkConfig
+
+# Number of distinct values in each view channel (docs/architecture.md): kind 0..4, color 0..6
+# (0 = none, then 6 colors), shade 0..5, size 0..5. One shared table with per-channel offsets lets a
+# single embedding lookup serve all four channels.
+VIEW_CHANNEL_VALUES = (5, 7, 6, 6)
+PAD_ID = 0
+N_ACTIONS = 4
+
+
+def _channel_offsets() -> torch.Tensor:
+    return torch.tensor(np.cumsum((0,) + VIEW_CHANNEL_VALUES[:-1]), dtype=torch.long)
+
+
+class _SummedEmbedding(torch.autograd.Function):
+    """Sum of the embedding rows named by each row of `index` (N, 4) -> (N, E).
+
+    Forward is `embedding_bag(mode="sum")`, one fused gather-and-add. Its stock backward sorts all
+    N*4 indices (about 3x the cost of the forward at these sizes); with only ~24 table rows, the
+    gradient is a (24, N) multi-hot matrix times the output gradient, a small dense matmul.
+    """
+
+    @staticmethod
+    def forward(ctx, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        ctx.save_for_backward(index)
+        ctx.rows = weight.shape[0]
+        return F.embedding_bag(index, weight, mode="sum")
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        (index,) = ctx.saved_tensors
+        multi_hot = grad.new_zeros(index.shape[0], ctx.rows).scatter_(1, index, 1.0)
+        return None, multi_hot.t() @ grad
+
+
+class ViewEncoder(nn.Module):
+    """Embeds a frame stack of views and runs 3x3 convolutions over it.
+
+    Each cell's 4 channel values are embedded and summed (an additive code of the object's
+    attributes); the k frames are concatenated along features, so the first convolution sees motion
+    and remembered objects. Convolutions are unpadded ("valid") while the map is at least 3 cells
+    wide: on a 7x7 view that is cheaper than padding and still covers every cell. Reused by the
+    instruction generator (with `in_frames=1`).
+    """
+
+    def __init__(self, embed_dim: int, conv_channels: tuple[int, ...], in_frames: int, view_size: int = 7):
+        super().__init__()
+        if not conv_channels:
+            raise ValueError("conv_channels: needs at least one layer")
+        self.embed_dim = embed_dim
+        self.in_frames = in_frames
+        self.view_size = view_size
+        self.embed = nn.Embedding(sum(VIEW_CHANNEL_VALUES), embed_dim)
+        # Not persistent: a constant, not a weight to publish or checkpoint.
+        self.register_buffer("offsets", _channel_offsets(), persistent=False)
+        convs = []
+        in_ch, size = in_frames * embed_dim, view_size
+        for out_ch in conv_channels:
+            pad = 0 if size >= 3 else 1
+            convs.append(nn.Conv2d(in_ch, out_ch, kernel_size=3, padding=pad))
+            size = size - 2 + 2 * pad
+            in_ch = out_ch
+        self.convs = nn.ModuleList(convs)
+        self.out_channels = in_ch
+        self.out_size = size  # spatial side of the last feature map
+        self.out_dim = in_ch * size * size
+
+    def embed_views(self, views: torch.Tensor) -> torch.Tensor:
+        """(B, k, V, V, 4) integer views -> (B, k*E, V, V) float maps."""
+        b, k, v, _, c = views.shape
+        if k != self.in_frames or c != len(VIEW_CHANNEL_VALUES):
+            raise ValueError(f"views: expected (B, {self.in_frames}, V, V, 4), got {tuple(views.shape)}")
+        idx = (views.long() + self.offsets).reshape(-1, c)
+        if torch.is_grad_enabled() and self.embed.weight.requires_grad:
+            cells = _SummedEmbedding.apply(idx, self.embed.weight)
+        else:
+            cells = F.embedding_bag(idx, self.embed.weight, mode="sum")
+        return cells.view(b, k, v, v, self.embed_dim).permute(0, 1, 4, 2, 3).reshape(b, k * self.embed_dim, v, v)
+
+    def forward(self, views: torch.Tensor, film: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """Last feature maps (B, C, S, S), after ReLU. `film=(gamma, beta)`, each (B, C), modulates the
+        last convolution before its ReLU, so the instruction can switch feature detectors on or off."""
+        h = self.embed_views(views)
+        last = len(self.convs) - 1
+        for i, conv in enumerate(self.convs):
+            h = conv(h)
+            if i == last and film is not None:
+                gamma, beta = film
+                h = h * gamma[:, :, None, None] + beta[:, :, None, None]
+            h = F.relu(h)
+        return h
+
+
+class InstructionEncoder(nn.Module):
+    """Word embedding + GRU; returns the hidden state after each mission's last real word.
+
+    The GRU runs over the whole padded sequence and the state at index length-1 is gathered: on CPU
+    this measured faster than pack_padded_sequence (which sorts, splits into per-step batches and
+    unsorts) at L=10, and trailing PADs cannot change the result because they come after the
+    gathered step.
+    """
+
+    def __init__(self, vocab_size: int, word_embed_dim: int, hidden: int):
+        super().__init__()
+        self.hidden = hidden
+        self.embed = nn.Embedding(vocab_size, word_embed_dim, padding_idx=PAD_ID)
+        self.gru = nn.GRU(word_embed_dim, hidden, batch_first=True)
+
+    def forward(self, mission: torch.Tensor) -> torch.Tensor:
+        lengths = (mission != PAD_ID).sum(dim=1).clamp(min=1)
+        out, _ = self.gru(self.embed(mission))  # (B, L, H)
+        index = (lengths - 1).view(-1, 1, 1).expand(-1, 1, self.hidden)
+        return out.gather(1, index).squeeze(1)
+
+
+class QNetwork(nn.Module):
+    """Q(view stack, mission) over the 4 actions.
+
+    fusion "film": the instruction yields per-channel (gamma, beta) for the last conv maps (gamma is
+    parametrised as 1 + delta so that an untrained instruction branch starts as the identity).
+    fusion "concat": the flattened view features and the instruction state are concatenated.
+    The head is one hidden layer, then a dueling split (value + advantage - mean advantage) or a
+    plain linear layer.
+    """
+
+    def __init__(self, cfg: NetworkConfig, n_actions: int = N_ACTIONS, vocab_size: int = 40, view_size: int = 7):
+        super().__init__()
+        if cfg.fusion not in ("film", "concat"):
+            raise ValueError(f"fusion: must be film or concat, got {cfg.fusion!r}")
+        self.cfg = cfg
+        self.n_actions = n_actions
+        self.fusion = cfg.fusion
+        self.dueling = cfg.dueling
+        self.view = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), cfg.frame_stack, view_size)
+        self.text = InstructionEncoder(vocab_size, cfg.word_embed_dim, cfg.text_hidden)
+        if self.fusion == "film":
+            self.film = nn.Linear(cfg.text_hidden, 2 * self.view.out_channels)
+            # Start at gamma = 1, beta = 0: training begins from a plain conv net and learns to modulate.
+            nn.init.zeros_(self.film.weight)
+            nn.init.zeros_(self.film.bias)
+            head_in = self.view.out_dim
+        else:
+            head_in = self.view.out_dim + cfg.text_hidden
+        self.trunk = nn.Linear(head_in, cfg.hidden)
+        if self.dueling:
+            self.value = nn.Linear(cfg.hidden, 1)
+            self.advantage = nn.Linear(cfg.hidden, n_actions)
+        else:
+            self.q = nn.Linear(cfg.hidden, n_actions)
+
+    def forward(self, views: torch.Tensor, mission: torch.Tensor) -> torch.Tensor:
+        return self.q_values(views, self.encode_mission(mission))
+
+    def encode_mission(self, mission: torch.Tensor) -> torch.Tensor:
+        """(B, L) word ids -> (B, text_hidden) instruction features."""
+        return self.text(mission)
+
+    def q_values(self, views: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
+        """Q-values from views and precomputed `encode_mission` features: obs and next_obs of a
+        transition share one mission, so the loss encodes it once per network."""
+        if self.fusion == "film":
+            delta_gamma, beta = self.film(text).chunk(2, dim=1)
+            features = self.view(views, film=(1.0 + delta_gamma, beta)).flatten(1)
+        else:
+            features = torch.cat([self.view(views).flatten(1), text], dim=1)
+        h = F.relu(self.trunk(features))
+        if not self.dueling:
+            return self.q(h)
+        advantage = self.advantage(h)
+        return self.value(h) + advantage - advantage.mean(dim=1, keepdim=True)
+
+
+def weights_numpy(net: nn.Module) -> dict[str, np.ndarray]:
+    """The network's weights as float32 CPU numpy arrays (copies), keyed by state_dict name."""
+    return {name: t.detach().to("cpu", torch.float32).numpy().copy() for name, t in net.state_dict().items()}
+
+
+def load_weights_numpy(net: nn.Module, weights: dict[str, np.ndarray]) -> None:
+    """Load `weights_numpy` output into `net`; ValueError names any missing, unexpected or misshapen entry.
+
+    Checked before anything is copied, so a bad message never leaves the network half-updated.
+    """
+    state = net.state_dict()
+    missing = sorted(set(state) - set(weights))
+    unexpected = sorted(set(weights) - set(state))
+    if missing or unexpected:
+        raise ValueError(f"weights: missing {missing}, unexpected {unexpected}")
+    for name, tensor in state.items():
+        shape = tuple(np.shape(weights[name]))
+        if shape != tuple(tensor.shape):
+            raise ValueError(f"weights: {name} has shape {shape}, expected {tuple(tensor.shape)}")
+    with torch.no_grad():
+        for name, tensor in state.items():
+            tensor.copy_(torch.as_tensor(np.asarray(weights[name]), dtype=tensor.dtype))
+
+
+def count_parameters(net: nn.Module) -> int:
+    return sum(p.numel() for p in net.parameters())

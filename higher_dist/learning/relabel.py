@@ -1,0 +1,215 @@
+"""Hindsight relabelling strategies: what a failed episode is stored again under.
+
+The paper's methods differ only here (DESIGN.md section 1):
+- `none`    (DQN, DQN+reward): nothing is relabelled;
+- `expert`  (DQN+HER): the picked object, described from ground truth (the expert reads it by design);
+- `noisy`   (DQN+HER noisy): the same with each attribute resampled with probability p;
+- `learned` (DQN+HIGhER): the instruction generator describes the view before the pick; it is trained
+  on successful episodes only, and used only once its gate is open.
+
+Every strategy relabels copies of wrong-pick episodes only: successes already carry their reward,
+time-outs picked nothing (nothing to describe), and relabelled copies are never relabelled again.
+Each relabel is scored against the picked object for the dashboard (`relabel_accuracy`); that score
+is computed after the relabels are made and is never fed back into training.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from higher_dist.config import Config, GeneratorConfig
+from higher_dist.learning.episode import WRONG_PICK, Episode
+from higher_dist.learning.generator import GeneratorTrainer
+from higher_dist.learning.generator_data import parse_many
+from higher_dist.world.language import VOCAB, expert_tokens, noisy_attrs
+from higher_dist.world.objects import ObjectSpace
+
+STRATEGIES = ("none", "expert", "noisy", "learned")
+
+
+def relabel_candidates(episodes: list[Episode]) -> list[Episode]:
+    """The episodes a strategy may relabel: original wrong picks."""
+    return [ep for ep in episodes if ep.outcome == WRONG_PICK and not ep.relabelled]
+
+
+class RelabelStrategy:
+    """Base class and the `none` strategy: observes nothing, relabels nothing."""
+
+    name = "none"
+
+    def __init__(self, seed: int = 0):
+        self.rng = np.random.default_rng(seed)
+        self.considered = 0  # wrong-pick episodes offered for relabelling
+        self.relabelled = 0  # copies returned
+        self.correct = 0  # copies whose instruction describes the picked object (metrics only)
+
+    def observe(self, episodes: list[Episode]) -> None:
+        """Learn from a batch of finished episodes (only the learned strategy does)."""
+
+    def relabel(self, episodes: list[Episode]) -> list[Episode]:
+        """Relabelled copies of the wrong-pick episodes among `episodes` (the originals are untouched)."""
+        self.considered += len(relabel_candidates(episodes))
+        return []
+
+    def train(self, budget_steps: int | None = None) -> dict[str, float]:
+        """Spend up to `budget_steps` gradient steps on the generator (only the learned strategy does)."""
+        return {}
+
+    def _score(self, originals: list[Episode], new_attrs: np.ndarray) -> None:
+        """Count relabels whose described object is the one picked. The only reader of `ep.picked`
+        in a learned relabel, and it runs after the relabels exist: a score, never an input."""
+        if not originals:
+            return
+        picked = np.stack([np.asarray(ep.picked, np.int64) for ep in originals])
+        self.correct += int((picked == np.asarray(new_attrs, np.int64)).all(axis=1).sum())
+        self.relabelled += len(originals)
+
+    def metrics(self) -> dict[str, Any]:
+        return {
+            "strategy": self.name,
+            "considered": self.considered,
+            "relabelled": self.relabelled,
+            # None until something was relabelled: "no data", not "always wrong".
+            "relabel_accuracy": self.correct / self.relabelled if self.relabelled else None,
+        }
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "rng": self.rng.bit_generator.state, "considered": self.considered,
+                "relabelled": self.relabelled, "correct": self.correct}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state["name"] != self.name:
+            raise ValueError(f"relabeler: checkpoint is for strategy {state['name']!r}, not {self.name!r}")
+        self.rng.bit_generator.state = state["rng"]
+        self.considered, self.relabelled, self.correct = (
+            int(state["considered"]), int(state["relabelled"]), int(state["correct"]))
+
+
+class ExpertRelabel(RelabelStrategy):
+    """HER with an expert: describe the object actually picked, with a random prefix and word order."""
+
+    name = "expert"
+
+    def _attrs_for(self, picked: np.ndarray) -> np.ndarray:
+        return picked
+
+    def relabel(self, episodes: list[Episode]) -> list[Episode]:
+        candidates = relabel_candidates(episodes)
+        self.considered += len(candidates)
+        # An original wrong pick always has a picked object; the check guards malformed input.
+        candidates = [ep for ep in candidates if np.all(np.asarray(ep.picked) >= 0)]
+        if not candidates:
+            return []
+        picked = np.stack([np.asarray(ep.picked, np.int64) for ep in candidates])
+        attrs = self._attrs_for(picked)
+        tokens = expert_tokens(attrs, self.rng)
+        self._score(candidates, attrs)
+        return [ep.relabel(t) for ep, t in zip(candidates, tokens)]
+
+
+class NoisyExpertRelabel(ExpertRelabel):
+    """The expert with each of the 4 attributes resampled, with probability p, among the world's values
+    (so an attribute actually changes with probability p * (1 - 1/n_values))."""
+
+    name = "noisy"
+
+    def __init__(self, space: ObjectSpace, p: float, seed: int = 0):
+        super().__init__(seed)
+        self.space, self.p = space, float(p)
+
+    def _attrs_for(self, picked: np.ndarray) -> np.ndarray:
+        return np.asarray(noisy_attrs(picked, self.p, self.space, self.rng), np.int64)
+
+
+class LearnedRelabel(RelabelStrategy):
+    """HIGhER: the instruction generator describes the view before the pick.
+
+    It reads `ep.frames` only: never `ep.picked` or `ep.goal` (except `_score`, after the fact).
+    While the gate is closed nothing is relabelled; an output that does not parse to an object of
+    the language is dropped and counted as `unparseable`.
+    """
+
+    name = "learned"
+
+    def __init__(self, cfg: GeneratorConfig, vocab_size: int, seed: int = 0, device: str = "cpu",
+                 view_size: int = 7):
+        super().__init__(seed)
+        self.cfg = cfg
+        self.trainer = GeneratorTrainer(cfg, vocab_size, seed, device=device, view_size=view_size)
+        self.unparseable = 0
+        self.gated_off = 0  # wrong picks not relabelled because the gate was closed
+        self._steps_since_eval = 0
+
+    def observe(self, episodes: list[Episode]) -> None:
+        self.trainer.observe_episodes(episodes)
+
+    def relabel(self, episodes: list[Episode]) -> list[Episode]:
+        candidates = relabel_candidates(episodes)
+        self.considered += len(candidates)
+        if not candidates:
+            return []
+        if not self.trainer.gate_open:
+            self.gated_off += len(candidates)
+            return []
+        views = np.stack([ep.frames[ep.length - 1] for ep in candidates])
+        tokens = self.trainer.generate(views)
+        attrs, ok = parse_many(tokens)
+        self.unparseable += int((~ok).sum())
+        kept = np.flatnonzero(ok)
+        copies = [candidates[i].relabel(tokens[i]) for i in kept]
+        self._score([candidates[i] for i in kept], attrs[kept])
+        return copies
+
+    def train(self, budget_steps: int | None = None) -> dict[str, float]:
+        """Train in rounds of `train_steps_per_round` steps; evaluate every `rounds_per_eval` rounds.
+
+        Training waits for a first full batch of training pairs: a handful of pairs would only be
+        memorised, and the CPU is better spent elsewhere until then.
+        """
+        steps = self.cfg.train_steps_per_round if budget_steps is None else int(budget_steps)
+        if steps <= 0 or self.trainer.dataset.n_train < self.cfg.batch_size:
+            return {}
+        loss = self.trainer.train_steps(steps)
+        self._steps_since_eval += steps
+        out = {"loss": loss}
+        if self._steps_since_eval >= self.cfg.rounds_per_eval * self.cfg.train_steps_per_round:
+            self._steps_since_eval = 0
+            out.update({f"val_{k}": v for k, v in self.trainer.evaluate().items()})
+        return out
+
+    def metrics(self) -> dict[str, Any]:
+        out = super().metrics()
+        t = self.trainer
+        out.update({
+            "unparseable": self.unparseable, "gated_off": self.gated_off, "gate_open": t.gate_open,
+            "dataset_size": len(t.dataset), "val_accuracy": t.val_accuracy, "train_steps": t.steps,
+            "loss": t.last_loss, "evaluations": t.evaluations,
+        })
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        state = super().state_dict()
+        state.update({"trainer": self.trainer.state_dict(), "unparseable": self.unparseable,
+                      "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval})
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        self.trainer.load_state_dict(state["trainer"])
+        self.unparseable, self.gated_off = int(state["unparseable"]), int(state["gated_off"])
+        self._steps_since_eval = int(state["steps_since_eval"])
+
+
+def make_relabeler(cfg: Config, seed: int, space: ObjectSpace | None = None) -> RelabelStrategy:
+    """The relabel strategy of a run config (cfg.relabel, cfg.generator, cfg.world)."""
+    kind = cfg.relabel.strategy
+    if kind == "none":
+        return RelabelStrategy(seed)
+    if kind == "expert":
+        return ExpertRelabel(seed)
+    if kind == "noisy":
+        return NoisyExpertRelabel(space if space is not None else ObjectSpace(cfg.world), cfg.relabel.noise_p, seed)
+    if kind == "learned":
+        return LearnedRelabel(cfg.generator, len(VOCAB), seed, device=cfg.device, view_size=cfg.world.view_size)
+    raise ValueError(f"relabel.strategy: unknown strategy {kind!r}; choose one of {', '.join(STRATEGIES)}")

@@ -1,0 +1,151 @@
+"""An array-based binary sum tree: the index structure behind proportional prioritized replay.
+
+Layout: `tree` holds 2 * n_leaves float64 values, the root at index 1, the children of node p at 2p
+and 2p + 1, and leaf i at `n_leaves + i` (index 0 is unused). `n_leaves` is the smallest power of two
+>= capacity, so every leaf sits at the same depth and a descent is one vector operation per level for
+a whole batch. Leaves past `capacity` stay 0 and can therefore never be sampled.
+
+Every internal node is *recomputed* as left + right rather than adjusted by a delta, so there is no
+drift from accumulated round-off however many updates are made, and a node is > 0 exactly when one of
+its children is > 0: the descent guard below relies on that.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+class SumTree:
+    def __init__(self, capacity: int):
+        if capacity < 1:
+            raise ValueError(f"SumTree capacity must be >= 1, got {capacity}")
+        self.capacity = int(capacity)
+        self.n_leaves = 1 << max(0, (self.capacity - 1).bit_length())
+        self.depth = self.n_leaves.bit_length() - 1  # levels below the root
+        self.tree = np.zeros(2 * self.n_leaves, dtype=np.float64)
+        # (n_leaves, 2) view: row p holds the two children of node p, fetched with one gather.
+        self._pairs = self.tree.reshape(-1, 2)
+        # Largest value ever written; prioritized replay gives new data this priority.
+        self.max_priority = 0.0
+
+    def total(self) -> float:
+        return float(self.tree[1])
+
+    def get(self, indices: np.ndarray) -> np.ndarray:
+        return self.tree[self.n_leaves + np.asarray(indices, dtype=np.int64)]
+
+    def leaves(self) -> np.ndarray:
+        """A read-only view of the capacity leaves."""
+        view = self.tree[self.n_leaves:self.n_leaves + self.capacity]
+        view.flags.writeable = False
+        return view
+
+    def update(self, indices: np.ndarray, priorities: np.ndarray) -> None:
+        """Set leaves `indices` to `priorities`; with a repeated index the last one in the batch wins."""
+        idx = np.asarray(indices, dtype=np.int64).ravel()
+        values = np.broadcast_to(np.asarray(priorities, dtype=np.float64), idx.shape)
+        if idx.size == 0:
+            return
+        if idx.min() < 0 or idx.max() >= self.capacity:
+            raise IndexError(f"SumTree leaf index out of range [0, {self.capacity})")
+        if not np.all(np.isfinite(values)) or values.min() < 0:
+            raise ValueError("SumTree priorities must be finite and >= 0")
+        if idx.size > 1 and np.all(np.diff(idx) == 1):
+            self._write_run(int(idx[0]), values)  # consecutive leaves: the cheap sliced path
+            return
+        if idx.size > 1:
+            # NumPy does not promise which of several writes to one element wins, so keep only the
+            # last occurrence of each index explicitly: a stable sort keeps batch order within ties.
+            order = np.argsort(idx, kind="stable")
+            idx = idx[order]
+            values = values[order]
+            last = np.empty(idx.size, dtype=bool)
+            np.not_equal(idx[:-1], idx[1:], out=last[:-1])
+            last[-1] = True
+            idx = idx[last]
+            values = values[last]
+        nodes = idx + self.n_leaves
+        self.tree[nodes] = values
+        self.max_priority = max(self.max_priority, float(values.max()))
+        # Recompute each ancestor from its two children, one level per step. Duplicated parents are
+        # harmless (they all write the same sum), and skipping de-duplication keeps the loop short.
+        tree = self.tree
+        for _ in range(self.depth):
+            nodes >>= 1
+            left = nodes << 1
+            tree[nodes] = tree[left] + tree[left + 1]
+
+    def update_run(self, first: int, priorities: np.ndarray) -> None:
+        """Set the consecutive leaves first, first+1, ... to `priorities` (no wrap-around).
+
+        The common case for a replay, which writes an episode into consecutive slots: every level of
+        ancestors is then a contiguous run too, so each level costs one sliced add instead of gathers.
+        """
+        values = np.asarray(priorities, dtype=np.float64).ravel()
+        if values.size == 0:
+            return
+        if first < 0 or first + values.size > self.capacity:
+            raise IndexError(f"SumTree run [{first}, {first + values.size}) outside [0, {self.capacity})")
+        if not (np.isfinite(values).all() and values.min() >= 0):
+            raise ValueError("SumTree priorities must be finite and >= 0")
+        self._write_run(first, values)
+
+    def _write_run(self, first: int, values: np.ndarray) -> None:
+        tree = self.tree
+        lo = first + self.n_leaves
+        hi = lo + values.size - 1  # inclusive
+        tree[lo:hi + 1] = values
+        self.max_priority = max(self.max_priority, float(values.max()))
+        for _ in range(self.depth):
+            lo >>= 1
+            hi >>= 1
+            np.add(tree[2 * lo:2 * hi + 2:2], tree[2 * lo + 1:2 * hi + 2:2], out=tree[lo:hi + 1])
+
+    def sample(self, values: np.ndarray) -> np.ndarray:
+        """Leaf indices whose prefix-sum interval contains each value (values in [0, total)).
+
+        A leaf of zero priority is never returned while total() > 0, even for a value at or beyond the
+        total or a round-off mismatch between a node and its children.
+        """
+        if not self.tree[1] > 0:
+            raise ValueError("cannot sample from a SumTree whose total priority is 0")
+        remaining = np.array(values, dtype=np.float64).ravel()  # copied: consumed by the descent
+        tree = self.tree
+        nodes = np.ones(remaining.size, dtype=np.int64)
+        for _ in range(self.depth):
+            nodes <<= 1  # left child
+            left = tree[nodes]
+            go_right = remaining >= left
+            remaining -= left * go_right
+            nodes += go_right
+        # Round-off can send a value into a zero-priority subtree (e.g. a value == total, or a node
+        # whose stored sum rounds above its children's). That is rare; redo those with a guarded
+        # descent instead of paying for the guard on every sample.
+        bad = self.tree[nodes] <= 0
+        if bad.any():
+            nodes[bad] = self._guarded_descent(np.asarray(values, dtype=np.float64).ravel()[bad])
+        return nodes - self.n_leaves
+
+    def _guarded_descent(self, values: np.ndarray) -> np.ndarray:
+        # Go right when the value passes the left sum and the right subtree has mass, or when the left
+        # subtree has none; since a positive node has a positive child, this ends on a positive leaf.
+        remaining = values.copy()
+        nodes = np.ones(remaining.size, dtype=np.int64)
+        for _ in range(self.depth):
+            pair = self._pairs[nodes]
+            left, right = pair[:, 0], pair[:, 1]
+            go_right = ((remaining >= left) & (right > 0)) | (left <= 0)
+            remaining = np.where(go_right, remaining - left, remaining)
+            nodes = 2 * nodes + go_right
+        return nodes
+
+    def state_dict(self) -> dict:
+        return {"capacity": self.capacity, "tree": self.tree.copy(), "max_priority": self.max_priority}
+
+    def load_state_dict(self, state: dict) -> None:
+        if int(state["capacity"]) != self.capacity:
+            raise ValueError(f"SumTree capacity mismatch: state has {state['capacity']}, tree has {self.capacity}")
+        tree = np.asarray(state["tree"], dtype=np.float64)
+        if tree.shape != self.tree.shape:
+            raise ValueError(f"SumTree state has shape {tree.shape}, expected {self.tree.shape}")
+        self.tree[:] = tree  # in place: keeps the _pairs view valid
+        self.max_priority = float(state["max_priority"])

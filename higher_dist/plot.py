@@ -1,0 +1,248 @@
+"""higher-plot RUN_DIR [RUN_DIR ...] --out DIR: figures from runs' metrics.jsonl.
+
+Each run directory holds config.json ("preset", "seed", "world": {"name": ...}) and metrics.jsonl
+(one record every couple of seconds, see higher_dist/roles/dashboard_view.py for the keys). A
+directory without metrics.jsonl but with run subdirectories (runs/ holding runs/a, runs/b) is expanded
+to those runs. Runs that share a preset are seeds of one method: their curves are interpolated onto a
+common frames grid and drawn as a mean with a min-max band.
+
+Writes success_rate.png, success_rate_heldout.png (when held-out evaluations exist),
+generator_accuracy.png (when a generator was trained) and replay_composition.png.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+GRID_POINTS = 200
+REPLAY_KEYS = (("replay_success", "success", "tab:green"), ("replay_wrong_pick", "wrong pick", "tab:red"),
+               ("replay_timeout", "time-out", "tab:olive"), ("replay_relabelled", "relabelled", "tab:cyan"))
+
+
+class NoRun(Exception):
+    """A directory given on the command line holds no run."""
+
+
+@dataclass
+class Run:
+    path: Path
+    preset: str
+    seed: Any
+    world: str
+    records: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def label(self) -> str:
+        return f"{self.preset} seed {self.seed}" if self.seed is not None else f"{self.preset} ({self.path.name})"
+
+    def series(self, key: str) -> tuple[np.ndarray, np.ndarray]:
+        """(frames, values) for the records where both are numbers, sorted by frames."""
+        pts = [(r.get("frames"), r.get(key)) for r in self.records]
+        pts = [(float(f), float(v)) for f, v in pts if _num(f) and _num(v)]
+        pts.sort()
+        if not pts:
+            return np.empty(0), np.empty(0)
+        arr = np.asarray(pts)
+        return arr[:, 0], arr[:, 1]
+
+    def has(self, key: str) -> bool:
+        return any(_num(r.get(key)) for r in self.records)
+
+
+def _num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+
+
+def load_run(path: Path) -> Run:
+    from higher_dist.rundir import read_metrics  # imports torch: only pay for it once we have a run
+
+    metrics = path / "metrics.jsonl"
+    if not metrics.is_file():
+        raise NoRun(f"higher-plot: {path} holds no run (no metrics.jsonl)")
+    records = [r for r in read_metrics(metrics) if isinstance(r, dict)]
+    if not records:
+        raise NoRun(f"higher-plot: {path} holds no run (metrics.jsonl has no records)")
+    config: dict[str, Any] = {}
+    try:
+        config = json.loads((path / "config.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        pass  # an interrupted run may lack it; the records carry preset and world too
+    world = config.get("world")
+    world_name = world.get("name") if isinstance(world, dict) else records[-1].get("world")
+    preset = config.get("preset") or records[-1].get("preset") or path.name
+    return Run(path, str(preset), config.get("seed"), str(world_name or "-"), records)
+
+
+def find_runs(paths: list[str]) -> list[Run]:
+    runs = []
+    for p in map(Path, paths):
+        if not (p / "metrics.jsonl").is_file() and p.is_dir():
+            children = sorted(c for c in p.iterdir() if (c / "metrics.jsonl").is_file())
+            if children:
+                runs.extend(load_run(c) for c in children)
+                continue
+        runs.append(load_run(p))
+    return runs
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only, no display: must come before pyplot is imported
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def success_key(run: Run) -> str:
+    """Greedy evaluation on training goals when the run has it; otherwise the training success."""
+    return "success_rate_eval_train" if run.has("success_rate_eval_train") else "success_rate_train"
+
+
+def mean_band(curves: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """(grid, mean, min, max) of several seeds' curves over the frames they all cover, or None."""
+    curves = [(x, y) for x, y in curves if len(x) > 0]
+    if not curves:
+        return None
+    start, stop = max(x[0] for x, _ in curves), min(x[-1] for x, _ in curves)
+    if stop <= start:
+        return None  # no common range: interpolating would be extrapolation
+    grid = np.linspace(start, stop, GRID_POINTS)
+    ys = np.stack([np.interp(grid, x, y) for x, y in curves])
+    return grid, ys.mean(axis=0), ys.min(axis=0), ys.max(axis=0)
+
+
+def plot_success(runs: list[Run], key_for, title: str, out: Path) -> Path:
+    plt = _pyplot()
+    by_preset: dict[str, list[Run]] = defaultdict(list)
+    for run in runs:
+        by_preset[run.preset].append(run)
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for i, (preset, group) in enumerate(sorted(by_preset.items())):
+        colour = f"C{i % 10}"
+        curves = [run.series(key_for(run)) for run in group]
+        band = mean_band(curves) if len(group) > 1 else None
+        if band is not None:
+            grid, mean, low, high = band
+            ax.plot(grid, mean, color=colour, label=f"{preset} (mean of {len(group)} seeds)")
+            ax.fill_between(grid, low, high, color=colour, alpha=0.2, linewidth=0)
+        else:
+            for j, (x, y) in enumerate(curves):
+                ax.plot(x, y, color=colour, alpha=1.0 if j == 0 else 0.6,
+                        label=preset if j == 0 else None)
+    ax.set(xlabel="environment frames", ylabel="success rate", title=title, ylim=(-0.02, 1.02))
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    return _save(fig, out)
+
+
+def plot_generator(runs: list[Run], out: Path) -> Path:
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for i, run in enumerate(runs):
+        colour = f"C{i % 10}"
+        x, y = run.series("generator_val_accuracy")
+        if len(x):
+            ax.plot(x, y, color=colour, label=f"{run.label}: validation accuracy")
+        x, y = run.series("relabel_accuracy")
+        if len(x):
+            ax.plot(x, y, color=colour, linestyle="--", label=f"{run.label}: relabel accuracy")
+    ax.set(xlabel="environment frames", ylabel="exact-match accuracy", ylim=(-0.02, 1.02),
+           title="Instruction generator (solid: validation, dashed: relabels vs ground truth)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    return _save(fig, out)
+
+
+def replay_fractions(run: Run) -> tuple[np.ndarray, np.ndarray]:
+    """(frames, fractions[4, T]) of the replay's origins, for records that report them."""
+    frames, rows = [], []
+    for r in sorted((r for r in run.records if _num(r.get("frames"))), key=lambda r: r["frames"]):
+        counts = [r.get(k) for k, _, _ in REPLAY_KEYS]
+        if not any(_num(c) for c in counts):
+            continue
+        counts = [float(c) if _num(c) and c > 0 else 0.0 for c in counts]
+        total = sum(counts)
+        if total > 0:
+            frames.append(float(r["frames"]))
+            rows.append([c / total for c in counts])
+    if not rows:
+        return np.empty(0), np.empty((len(REPLAY_KEYS), 0))
+    return np.asarray(frames), np.asarray(rows).T
+
+
+def plot_replay(runs: list[Run], out: Path) -> Path:
+    plt = _pyplot()
+    with_data = [(run, *replay_fractions(run)) for run in runs]
+    with_data = [d for d in with_data if len(d[1])] or [(runs[0], np.empty(0), np.empty((4, 0)))]
+    n = len(with_data)
+    cols = min(n, 3)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.5 * rows), squeeze=False, sharey=True)
+    for ax, (run, x, fractions) in zip(axes.flat, with_data):
+        if len(x):
+            ax.stackplot(x, fractions, labels=[label for _, label, _ in REPLAY_KEYS],
+                         colors=[c for _, _, c in REPLAY_KEYS], alpha=0.85)
+        else:
+            ax.text(0.5, 0.5, "no replay composition recorded", ha="center", va="center",
+                    transform=ax.transAxes)
+        ax.set(title=run.label, xlabel="environment frames", ylim=(0, 1))
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    axes[0][0].set_ylabel("fraction of replay")
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="upper right", fontsize="small")
+    fig.suptitle("Replay composition by origin")
+    return _save(fig, out)
+
+
+def _save(fig, out: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser("higher-plot", description="Plot the curves of one or more runs.")
+    parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories (or a folder of runs)")
+    parser.add_argument("--out", default="plots", help="where the PNG files go (default: ./plots)")
+    args = parser.parse_args(argv)
+    try:
+        runs = find_runs(args.runs)
+    except NoRun as e:
+        print(e, file=sys.stderr)
+        return 2
+    try:
+        _pyplot()
+    except ImportError:
+        print("higher-plot: matplotlib is missing; pip install 'higher-dist[plot]'", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    written = [plot_success(runs, success_key, "Success rate on training goals", out / "success_rate.png")]
+    heldout = [run for run in runs if run.has("success_rate_eval_heldout")]
+    if heldout:
+        written.append(plot_success(heldout, lambda run: "success_rate_eval_heldout",
+                                    "Success rate on held-out goals", out / "success_rate_heldout.png"))
+    generator_runs = [run for run in runs if run.has("generator_val_accuracy") or run.has("relabel_accuracy")]
+    if generator_runs:
+        written.append(plot_generator(generator_runs, out / "generator_accuracy.png"))
+    else:
+        print("higher-plot: no generator data in these runs; skipped generator_accuracy.png")
+    written.append(plot_replay(runs, out / "replay_composition.png"))
+    for path in written:
+        print(path)
+    return 0

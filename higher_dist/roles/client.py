@@ -1,0 +1,94 @@
+"""What actors and the relabeler share: the control connection to the learner.
+
+`ControlClient.join` says hello and waits for the welcome that carries the run's config and endpoints;
+a refusal (e.g. a protocol mismatch) raises `Refused` with the learner's reason. Heartbeats and stats go
+up the same DEALER socket; a `stop` coming down it ends the role.
+"""
+from __future__ import annotations
+
+import os
+import socket
+import time
+from typing import Any
+
+import zmq
+
+from higher_dist.config import Config, from_dict
+from higher_dist.launch.topology import Endpoints
+from higher_dist.wire import codec, sockets
+from higher_dist.wire.security import CurveClient
+from higher_dist.wire.schema import PROTOCOL_VERSION
+
+
+class Refused(RuntimeError):
+    pass
+
+
+class ControlClient:
+    def __init__(self, learner: str, role: str, index: int | None, keys: str | None = None):
+        Endpoints.from_control(learner)  # a malformed address fails here, with its reason
+        self.role, self.index = role, -1 if index is None else index
+        self.ctx = zmq.Context.instance()
+        self.keys = keys
+        self.curve = CurveClient(keys) if keys else None
+        self.sock = sockets.make_socket(self.ctx, zmq.DEALER, connect=learner, hwm=100, curve=self.curve)
+        self.rejects = sockets.RejectCounter()
+        self.stop_reason: str | None = None
+        self.restarts = int(os.environ.get("HIGHER_RESTARTS", "0"))
+        self._last_heartbeat = 0.0
+        self._seq = 0
+
+    def send(self, msg_type: str, fields: dict[str, Any]) -> None:
+        self._seq += 1
+        try:
+            self.sock.send_multipart(codec.encode(msg_type, fields, sender=self.role, seq=self._seq),
+                                     flags=zmq.NOBLOCK)
+        except zmq.Again:
+            pass  # the learner is gone or slow; heartbeats are periodic, the next one will do
+
+    def join(self, timeout_s: float = 120.0, should_stop=None) -> tuple[Config, dict[str, str]]:
+        """Hello until welcomed; returns the learner's config and endpoints. KeyboardInterrupt when
+        `should_stop()` turns true while waiting (a signal arrived)."""
+        deadline = time.time() + timeout_s
+        hello = {"role": self.role, "host": socket.gethostname(), "pid": os.getpid(),
+                 "protocol": PROTOCOL_VERSION, "index": self.index}
+        while time.time() < deadline:
+            self.send("hello", hello)
+            msg = sockets.recv_message(self.sock, 1000, self.rejects)
+            if should_stop is not None and should_stop():
+                raise KeyboardInterrupt
+            if msg is None:
+                continue
+            if msg.type == "refuse":
+                raise Refused(msg.fields["reason"])
+            if msg.type == "welcome":
+                if msg.fields["protocol"] != PROTOCOL_VERSION:
+                    raise Refused(f"protocol mismatch: learner {msg.fields['protocol']}, this role {PROTOCOL_VERSION}")
+                self.index = msg.fields["index"]
+                return from_dict(msg.fields["config"]), dict(msg.fields["endpoints"])
+        raise TimeoutError(f"no welcome from the learner within {timeout_s:.0f} s")
+
+    def poll(self) -> bool:
+        """Read control messages without blocking; True once the learner said stop."""
+        while True:
+            msg = sockets.recv_message(self.sock, 0, self.rejects)
+            if msg is None:
+                return self.stop_reason is not None
+            if msg.type == "stop":
+                self.stop_reason = msg.fields.get("reason") or "stop"
+
+    def heartbeat(self, counters: dict[str, float], state: str = "running", every_s: float = 1.0) -> None:
+        now = time.time()
+        if state == "running" and now - self._last_heartbeat < every_s:
+            return
+        self._last_heartbeat = now
+        self.send("heartbeat", {"role": self.role, "id": self.index, "state": state,
+                                "counters": {k: float(v) for k, v in counters.items() if v is not None}})
+
+    def stats(self, values: dict[str, Any]) -> None:
+        values = dict(values, restarts=self.restarts, rejected_messages=self.rejects.total)
+        self.send("stats", {"role": self.role, "id": self.index, "values": values})
+
+    def close(self) -> None:
+        self.heartbeat({}, state="stopping")
+        self.sock.close(linger=200)

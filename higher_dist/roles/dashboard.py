@@ -1,0 +1,102 @@
+"""The live dashboard: subscribe to the learner's telemetry and redraw with rich.
+
+The learner PUBlishes one frame per record, a msgpack-encoded dict, several times a second. The
+dashboard only ever wants the newest one, so the SUB socket is CONFLATEd with a tiny high-water mark:
+a slow terminal can never make messages pile up anywhere. A frame that does not decode to a dict is
+counted and ignored; a record {"type": "stop"} ends the dashboard (the learner sends it on shutdown).
+
+Endpoints: the telemetry socket is the learner's control port + 3 (launch/topology.py lays out
+control=B, experience=B+1, weights=B+2, telemetry=B+3, relabeler=B+4), so a dashboard needs only the
+control endpoint an actor is given; `telemetry_endpoint_for` does that arithmetic.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import msgpack
+import zmq
+from rich.console import Console
+from rich.live import Live
+
+from higher_dist.roles.dashboard_view import DashboardState, render
+
+MAX_FRAME_BYTES = 8 << 20  # a telemetry record is a few kB; refuse to buffer anything absurd
+
+
+def telemetry_endpoint_for(control_endpoint: str) -> str:
+    """tcp://HOST:P -> tcp://HOST:P+3, or a ValueError naming what is wrong with the endpoint."""
+    # Delegate to the topology module so the port layout is written down in exactly one place.
+    from higher_dist.launch.topology import Endpoints
+
+    return Endpoints.from_control(control_endpoint).telemetry
+
+
+def decode_record(frame: bytes) -> dict[str, Any] | None:
+    """The record in one telemetry frame, or None for anything that is not a msgpack map."""
+    # unpackb() has no max_buffer_size (only msgpack.Unpacker does): bound the frame ourselves.
+    if len(frame) > MAX_FRAME_BYTES:
+        return None
+    try:
+        obj = msgpack.unpackb(frame, raw=False, strict_map_key=False)
+    except Exception:  # msgpack raises several unrelated types for garbage; all mean "ignore it"
+        return None
+    return obj if isinstance(obj, dict) else None
+
+
+def _subscribe(ctx: zmq.Context, endpoint: str) -> zmq.Socket:
+    sock = ctx.socket(zmq.SUB)
+    # CONFLATE and RCVHWM must be set before connect to take effect.
+    sock.setsockopt(zmq.CONFLATE, 1)
+    sock.setsockopt(zmq.RCVHWM, 4)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.SUBSCRIBE, b"")
+    sock.connect(endpoint)
+    return sock
+
+
+def run_dashboard(telemetry_endpoint: str, refresh_per_s: float = 4.0, stop_after_s: float | None = None,
+                  console: Console | None = None, state: DashboardState | None = None) -> int:
+    """Draw the telemetry at `telemetry_endpoint` until Ctrl-C, a stop record or `stop_after_s`.
+
+    `state` may be passed to inspect what was received after the call returns (tests do). Returns 0:
+    every way out is a normal exit, and the Live context restores the terminal on all of them.
+    """
+    if refresh_per_s <= 0:
+        raise ValueError(f"refresh_per_s must be > 0, got {refresh_per_s}")
+    state = state if state is not None else DashboardState(source=telemetry_endpoint)
+    state.source = state.source or telemetry_endpoint
+    deadline = None if stop_after_s is None else time.monotonic() + stop_after_s
+    poll_ms = max(1, int(1000 / refresh_per_s))
+    ctx = zmq.Context()  # our own context, so term() cannot wait on sockets of the caller's
+    sock = _subscribe(ctx, telemetry_endpoint)
+    try:
+        with Live(render(state), console=console, screen=False, transient=False,
+                  refresh_per_second=refresh_per_s, auto_refresh=True) as live:
+            try:
+                while deadline is None or time.monotonic() < deadline:
+                    timeout = poll_ms
+                    if deadline is not None:
+                        timeout = max(0, min(poll_ms, int((deadline - time.monotonic()) * 1000)))
+                    if sock.poll(timeout, zmq.POLLIN):
+                        try:
+                            record = decode_record(sock.recv(zmq.NOBLOCK))
+                        except zmq.Again:
+                            continue
+                        if record is None:
+                            state.note_garbage()
+                        elif record.get("type") == "stop":
+                            break
+                        else:
+                            state.update(record)
+                    # Redraw even without news, so the staleness banner's age keeps counting.
+                    live.update(render(state))
+            except KeyboardInterrupt:
+                pass
+            live.update(render(state))
+    except KeyboardInterrupt:  # Ctrl-C while Live was starting or stopping: still a clean exit
+        pass
+    finally:
+        sock.close(0)
+        ctx.term()
+    return 0

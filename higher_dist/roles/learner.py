@@ -1,0 +1,272 @@
+"""The learner role: the head of the cluster.
+
+A short loop around `LearnerCore`: answer control messages (hello -> welcome with the run's config and
+endpoints), take episode batches while the samples-per-insert ratio allows (otherwise the sockets'
+high-water marks push back on the relabeler and the actors), run DQN updates, publish weights, write
+metrics and telemetry, checkpoint. Ends when the frame budget is reached or on SIGTERM/SIGINT.
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import time
+
+import msgpack
+import numpy as np
+import torch
+import zmq
+
+from higher_dist import config as config_mod
+from higher_dist.config import Config
+from higher_dist.launch.topology import Endpoints, bind_address
+from higher_dist.learning.learner_core import LearnerCore
+from higher_dist.roles.registry import RoleRegistry
+from higher_dist.rundir import RunDir
+from higher_dist.wire import codec, sockets
+from higher_dist.wire.security import CurveServer, start_authenticator
+from higher_dist.wire.episodes import unpack_episodes
+from higher_dist.wire.schema import PROTOCOL_VERSION
+from higher_dist.world.language import VOCAB
+
+log = logging.getLogger("higher.learner")
+TELEMETRY_EVERY_S = 0.5
+WEIGHTS_REPUBLISH_S = 2.0  # late subscribers (a restarted actor) get weights within this time
+
+
+class LearnerRole:
+    def __init__(self, cfg: Config, endpoints: Endpoints, run_dir: str, resume: bool = False,
+                 bind_host: str | None = None, keys: str | None = None):
+        torch.set_num_threads(cfg.torch_threads)
+        torch.manual_seed(cfg.seed)
+        self.cfg, self.endpoints = cfg, endpoints
+        self.rd = RunDir(run_dir)
+        self.core = LearnerCore(cfg)
+        self.registry = RoleRegistry()
+        self.rejects = sockets.RejectCounter()
+        self.relabeler_endpoint: str | None = None
+        self.pending_hellos: list[tuple[bytes, int]] = []
+        self.weights_version = 0
+        self.stop_reason = ""
+        self.eval: dict[str, float] = {}
+        self.started = time.time()
+        if resume:
+            self._resume()
+        self.rd.write_config(cfg)
+        ctx = zmq.Context.instance()
+        b = lambda ep: bind_address(ep, bind_host)  # noqa: E731
+        curve = CurveServer(keys) if keys else None
+        # With keys, only clients on the allow-list get through the CURVE handshake.
+        self.auth = start_authenticator(ctx, keys) if keys else None
+        self.control = sockets.make_socket(ctx, zmq.ROUTER, bind=b(endpoints.control), hwm=1000, curve=curve)
+        # A small receive queue: when the learner stops reading, senders block instead of piling up.
+        self.experience = sockets.make_socket(ctx, zmq.PULL, bind=b(endpoints.experience), hwm=4, curve=curve)
+        self.weights = sockets.make_socket(ctx, zmq.PUB, bind=b(endpoints.weights), hwm=2, curve=curve)
+        self.telemetry = sockets.make_socket(ctx, zmq.PUB, bind=b(endpoints.telemetry), hwm=10)
+
+    # -- state --------------------------------------------------------------------------------------
+    def _resume(self) -> None:
+        state = self.rd.load_checkpoint("learner")
+        if state is None:
+            raise ValueError(f"--resume: no learner checkpoint in {self.rd.path}")
+        self.core.load_state_dict(state["core"])
+        self.weights_version = int(state["weights_version"])
+        torch.set_rng_state(state["torch_rng"])
+        log.info("resumed at %d frames, %d updates", self.core.frames, self.core.updates)
+
+    def checkpoint(self) -> None:
+        state = {"core": self.core.state_dict(with_replay=self.cfg.replay.checkpoint_replay),
+                 "weights_version": self.weights_version, "torch_rng": torch.get_rng_state(),
+                 "config": self.cfg.to_dict()}
+        self.rd.save_checkpoint("learner", state)
+
+    # -- control ------------------------------------------------------------------------------------
+    def _send(self, identity: bytes, msg_type: str, fields: dict) -> None:
+        try:
+            self.control.send_multipart([identity, *codec.encode(msg_type, fields, sender="learner")],
+                                        flags=zmq.NOBLOCK)
+        except zmq.Again:
+            pass  # a peer that does not read its control socket loses this reply; it will ask again
+
+    def _welcome(self, identity: bytes, index: int) -> None:
+        eps = self.endpoints.as_dict()
+        eps["episodes"] = self.relabeler_endpoint or eps["relabeler"]
+        self._send(identity, "welcome", {"config": self.cfg.to_dict(), "endpoints": eps,
+                                         "protocol": PROTOCOL_VERSION, "index": index})
+
+    def handle_control(self, identity: bytes, msg) -> None:
+        f = msg.fields
+        if msg.type == "hello":
+            if f["protocol"] != PROTOCOL_VERSION:
+                self._send(identity, "refuse", {
+                    "reason": f"protocol version mismatch: this learner speaks {PROTOCOL_VERSION}, "
+                              f"the {f['role']} speaks {f['protocol']}; run the same higher-dist version",
+                    "protocol": PROTOCOL_VERSION})
+                return
+            if f["role"] not in ("actor", "relabeler", "dashboard"):
+                self._send(identity, "refuse", {"reason": f"unknown role {f['role']!r}"})
+                return
+            index = f.get("index", -1)
+            index = self.registry.next_index(f["role"]) if index is None or index < 0 else index
+            self.registry.hello(f["role"], index, identity, f["host"], f["pid"])
+            if f["role"] == "actor" and self.relabeler_endpoint is None:
+                self.pending_hellos.append((identity, index))  # answered once the relabeler registers
+            else:
+                self._welcome(identity, index)
+            return
+        info = self.registry.seen(identity)
+        if info is None:
+            self.rejects.add("unknown_peer")
+            return
+        if msg.type == "register":
+            self.relabeler_endpoint = f["endpoint"]
+            for ident, index in self.pending_hellos:
+                self._welcome(ident, index)
+            self.pending_hellos.clear()
+        elif msg.type == "heartbeat":
+            info.stopped = f["state"] == "stopping"
+            info.stats.update(f["counters"])
+        elif msg.type == "stats":
+            info.stats.update(f["values"])
+            for key in ("success_rate_eval_train", "success_rate_eval_heldout"):
+                if f["values"].get(key) is not None:
+                    self.eval[key] = f["values"][key]
+        else:
+            self.rejects.add("unexpected_type")
+
+    def poll_control(self, limit: int = 100) -> None:
+        for _ in range(limit):
+            if not self.control.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                return
+            routed = sockets.recv_routed(self.control, 0, self.rejects, "control")
+            if routed is not None:
+                self.handle_control(*routed)
+
+    def poll_experience(self, limit: int = 4) -> None:
+        for _ in range(limit):
+            if not self.core.wants_experience():
+                return
+            msg = sockets.recv_message(self.experience, 0, self.rejects, "experience")
+            if msg is None:
+                if not self.experience.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                    return
+                continue
+            if msg.type != "episodes":
+                self.rejects.add("unexpected_type")
+                continue
+            try:
+                episodes = unpack_episodes(msg, max_steps=self.cfg.world.max_steps,
+                                           view_size=self.cfg.world.view_size, vocab_size=len(VOCAB))
+            except codec.WireError as e:
+                self.rejects.add(e.reason)
+                continue
+            self.core.add_episodes(episodes)
+
+    # -- outputs ------------------------------------------------------------------------------------
+    def publish_weights(self) -> None:
+        self.weights_version = self.core.updates
+        self.weights.send(codec.encode_weights(self.weights_version, self.core.dqn.weights_numpy()))
+
+    def record(self) -> dict:
+        elapsed = time.time() - self.started
+        r = self.core.metrics()
+        roles = self.registry.table(self.weights_version)
+        relabeler = next((i.stats for i in self.registry.roles.values() if i.role == "relabeler"), {})
+        actor_fps = [row["frames_per_s"] or 0.0 for row in roles if row["role"] == "actor" and row["state"] == "alive"]
+        lags = [row["weights_lag"] for row in roles if row["role"] == "actor" and row["weights_lag"] is not None]
+        r.update({
+            "elapsed_s": round(elapsed, 1), "preset": self.cfg.preset, "world": self.cfg.world.name,
+            "frames_budget": self.cfg.frames, "weights_version": self.weights_version,
+            "frames_per_s": round(sum(actor_fps), 1), "updates_per_s": round(self._rate("updates"), 2),
+            "weights_lag_mean": round(float(np.mean(lags)), 1) if lags else None,
+            "rejected_messages": self.rejects.total + sum(int(i.stats.get("rejected_messages", 0) or 0)
+                                                          for i in self.registry.roles.values()),
+            "learner_rejected": self.rejects.total,
+            "generator_val_accuracy": relabeler.get("val_accuracy"),
+            "relabel_dataset_size": relabeler.get("dataset_size"),
+            "relabel_gate_open": relabeler.get("gate_open"),
+            "relabels_per_s": relabeler.get("relabels_per_s"),
+            "relabel_accuracy": relabeler.get("relabel_accuracy"),
+            "epsilon_mean": relabeler.get("epsilon_mean"),
+            **self.eval, "roles": roles,
+        })
+        eps = [i.stats.get("epsilon_mean") for i in self.registry.roles.values() if i.role == "actor"]
+        eps = [e for e in eps if e is not None]
+        r["epsilon_mean"] = round(float(np.mean(eps)), 4) if eps else None
+        return r
+
+    def _rate(self, key: str) -> float:
+        now, value = time.time(), getattr(self.core, key)
+        last = getattr(self, f"_last_{key}", None)
+        setattr(self, f"_last_{key}", (now, value))
+        if last is None or now - last[0] <= 0:
+            return 0.0
+        rate = (value - last[1]) / (now - last[0])
+        setattr(self, f"_rate_{key}", rate)
+        return rate
+
+    # -- loop ---------------------------------------------------------------------------------------
+    def run(self) -> int:
+        stop = []
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, lambda *_: stop.append(1))
+        self.publish_weights()
+        last_weights = last_tel = last_metrics = last_ckpt = time.time()
+        poller = zmq.Poller()
+        poller.register(self.control, zmq.POLLIN)
+        poller.register(self.experience, zmq.POLLIN)
+        try:
+            while not stop and self.core.frames < self.cfg.frames:
+                can_update = self.core.can_update()
+                poller.poll(0 if can_update else 20)
+                self.poll_control()
+                self.poll_experience()
+                before = self.core.updates
+                self.core.train_available(max_updates=4)
+                now = time.time()
+                crossed = self.core.updates // self.cfg.weights_every != before // self.cfg.weights_every
+                if crossed or now - last_weights > WEIGHTS_REPUBLISH_S:
+                    self.publish_weights()
+                    last_weights = now
+                if now - last_tel > TELEMETRY_EVERY_S:
+                    last_tel = now
+                    record = self.record()
+                    self.telemetry.send(msgpack.packb(record, default=_plain), flags=zmq.NOBLOCK)
+                    if now - last_metrics > self.cfg.stats_every_s:
+                        last_metrics = now
+                        self.rd.append_metrics(record)
+                if now - last_ckpt > self.cfg.checkpoint_every_s:
+                    last_ckpt = now
+                    self.checkpoint()
+            self.stop_reason = "frame budget reached" if not stop else "stopped by signal"
+        finally:
+            self.shutdown()
+        return 0
+
+    def shutdown(self) -> None:
+        for identity in self.registry.identities():
+            self._send(identity, "stop", {"reason": self.stop_reason or "learner exiting"})
+        try:
+            self.telemetry.send(msgpack.packb({"type": "stop"}), flags=zmq.NOBLOCK)
+        except zmq.ZMQError:
+            pass
+        record = self.record()
+        self.rd.append_metrics(record)
+        self.checkpoint()
+        for s in (self.control, self.experience, self.weights, self.telemetry):
+            s.close(linger=200)
+        if self.auth is not None:
+            self.auth.stop()
+        log.info("learner stopped: %s", self.stop_reason)
+
+
+def _plain(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    raise TypeError(type(x).__name__)
+
+
+def run_learner(cfg: Config, endpoints: Endpoints, run_dir: str, resume: bool = False,
+                bind_host: str | None = None, keys: str | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    config_mod.validate(cfg)
+    return LearnerRole(cfg, endpoints, run_dir, resume, bind_host, keys).run()

@@ -1,0 +1,112 @@
+"""A run directory: config.json, metrics.jsonl and atomic checkpoints.
+
+Checkpoints are written to a temporary file and renamed over the old one, so a crash mid-write leaves
+the previous checkpoint intact. They are loaded with `torch.load(weights_only=True)`: numpy arrays are
+stored as tagged tensors, so no pickle of arbitrary objects is involved.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from higher_dist.config import Config
+
+_ND = "__ndarray__"
+
+
+class RunDir:
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self.path.mkdir(parents=True, exist_ok=True)
+
+    @property
+    def metrics_path(self) -> Path:
+        return self.path / "metrics.jsonl"
+
+    def write_config(self, cfg: Config) -> None:
+        atomic_write_bytes(self.path / "config.json", cfg.to_json().encode())
+
+    def read_config(self) -> dict[str, Any] | None:
+        p = self.path / "config.json"
+        return json.loads(p.read_text()) if p.exists() else None
+
+    def append_metrics(self, record: dict[str, Any]) -> None:
+        record = {"time": round(time.time(), 3), **record}
+        with open(self.metrics_path, "a") as f:
+            f.write(json.dumps(record, default=_json_default) + "\n")
+
+    def read_metrics(self) -> list[dict[str, Any]]:
+        return read_metrics(self.metrics_path)
+
+    def checkpoint_path(self, role: str) -> Path:
+        return self.path / f"{role}.ckpt"
+
+    def save_checkpoint(self, role: str, state: dict[str, Any]) -> Path:
+        path = self.checkpoint_path(role)
+        tmp = path.with_suffix(f".tmp{os.getpid()}")
+        torch.save(_to_tensors(state), tmp)
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        return path
+
+    def load_checkpoint(self, role: str) -> dict[str, Any] | None:
+        path = self.checkpoint_path(role)
+        if not path.exists():
+            return None
+        return _from_tensors(torch.load(path, map_location="cpu", weights_only=True))
+
+
+def read_metrics(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """Every complete JSON line of a metrics file (a torn last line from a crash is skipped)."""
+    out = []
+    try:
+        with open(path) as f:
+            for line in f:
+                try:
+                    out.append(json.loads(line))
+                except json.JSONDecodeError:
+                    continue
+    except FileNotFoundError:
+        pass
+    return out
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    tmp = path.with_suffix(path.suffix + f".tmp{os.getpid()}")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def _json_default(x: Any) -> Any:
+    if isinstance(x, np.generic):
+        return x.item()
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+def _to_tensors(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return {_ND: torch.from_numpy(np.ascontiguousarray(obj))}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, dict):
+        return {k: _to_tensors(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_to_tensors(v) for v in obj)
+    return obj
+
+
+def _from_tensors(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        if set(obj) == {_ND}:
+            return obj[_ND].numpy()
+        return {k: _from_tensors(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_from_tensors(v) for v in obj)
+    return obj

@@ -1,0 +1,195 @@
+"""The declarative schema of the higher-dist wire protocol: every message type, its header fields and its arrays.
+
+The codec (`codec.py`) reads these tables and nothing else, so adding a message type is one `MessageSpec`
+entry in `_SPECS`. Limits are deliberately tight: a peer that declares a size outside them is refused before
+any memory is touched, which is what keeps a corrupt or hostile message from costing more than its bytes.
+
+Value ranges follow docs/architecture.md (view channels, actions, outcomes, attribute indices). The vocabulary
+is owned by world/, which this module must not import: tokens are only capped here at `MAX_TOKEN`, and the
+exact bound (`< vocab_size`) is checked by `episodes.unpack_episodes`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Union
+
+import numpy as np
+
+from higher_dist.config import COLORS, SHADES, SIZES, TYPES
+
+PROTOCOL_VERSION = 1
+
+# Size caps. A frame larger than MAX_FRAME_BYTES never reaches Python: sockets.make_socket sets MAXMSGSIZE.
+MAX_ARRAY_BYTES = 64 << 20  # one array (one raw frame)
+MAX_PAYLOAD_BYTES = 64 << 20  # all arrays of one message together
+MAX_HEADER_BYTES = 1 << 20  # the msgpack header (a config dict is a few KiB)
+MAX_FRAME_BYTES = MAX_PAYLOAD_BYTES + MAX_HEADER_BYTES + 64  # one-frame weights: prefix + header + payload
+MAX_ARRAYS = 512  # arrays in one message (a Q-network state dict has a few dozen)
+MAX_NDIM = 6
+MAX_DIM = 1 << 28  # any single dimension; real limits per array are in the specs below
+
+# Limits handed to msgpack.unpackb; anything larger in a header is an attack or a bug.
+MSGPACK_LIMITS = dict(max_str_len=1 << 16, max_bin_len=0, max_array_len=1 << 12, max_map_len=1 << 12,
+                      max_ext_len=0)
+MAX_TREE_DEPTH = 8  # nesting of the config tree carried by `welcome`
+MAX_KEY_LEN = 128
+MAX_ID = (1 << 31) - 1
+MAX_COUNTER = (1 << 63) - 1
+
+# Episode batch limits: generous for real use (32 envs x 40 steps), small enough to bound memory.
+MAX_EPISODES = 4096
+MAX_STEPS = 10_000  # per episode; the run's own max_steps is checked by unpack_episodes
+MAX_FRAMES = 1 << 18  # frames in one batch: 2^18 x 7x7x4 bytes = 49 MiB, under MAX_ARRAY_BYTES
+MAX_VIEW = 31
+MAX_MISSION_LEN = 64
+MAX_TOKEN = 1023
+
+# View channels [kind, color, shade, size]: kind 0..4 (unseen/empty/wall/key/ball), the others 0 = none,
+# else 1 + index into the global tables, so the largest value is the table's length.
+VIEW_CHANNEL_MAX = (4, len(COLORS), len(SHADES), len(SIZES))
+# Object attributes (color, type, shade, size) are plain indices, -1 = none.
+ATTR_MAX = (len(COLORS) - 1, len(TYPES) - 1, len(SHADES) - 1, len(SIZES) - 1)
+N_ACTIONS = 4
+N_OUTCOMES = 3
+
+Bound = Union[int, float, tuple, None]
+
+
+@dataclass(frozen=True)
+class Field:
+    """A header field. `kind` says what values are allowed:
+
+    int, float, bool, str (free text up to max_len), name (identifier-like text), tree (nested plain data:
+    the config), strmap (str -> str), numbers (str -> finite number), flat (str -> number, text, bool or nil).
+    `sym` ties an int field to an array dimension of the same symbol (e.g. count == number of episodes).
+    """
+
+    name: str
+    kind: str
+    lo: float | None = None
+    hi: float | None = None
+    max_len: int = 256  # text length, or entries of a map
+    required: bool = True
+    default: Any = None
+    sym: str | None = None
+
+
+@dataclass(frozen=True)
+class Dim:
+    """One array dimension: lo <= size <= hi; dimensions sharing `sym` must be equal across arrays."""
+
+    lo: int
+    hi: int
+    sym: str | None = None
+
+
+def exact(n: int) -> Dim:
+    return Dim(n, n)
+
+
+@dataclass(frozen=True)
+class Array:
+    """An array frame. `dims=None` admits any rank up to MAX_NDIM (weights, whose shapes the network decides).
+
+    `lo`/`hi` bound the values: a scalar, or a tuple giving one bound per index of the last axis (the view's
+    channels, the attribute columns). Float arrays must be finite unless `allow_nonfinite`.
+    """
+
+    name: str
+    dtype: str
+    dims: tuple[Dim, ...] | None
+    lo: Bound = None
+    hi: Bound = None
+    allow_nonfinite: bool = False
+    required: bool = True
+
+    @property
+    def wire_dtype(self) -> str:
+        """The dtype string that travels in the header: always little-endian, e.g. '<f4', '|u1'."""
+        return np.dtype(self.dtype).newbyteorder("<").str
+
+
+@dataclass(frozen=True)
+class MessageSpec:
+    type: str
+    fields: tuple[Field, ...] = ()
+    arrays: tuple[Array, ...] = ()
+    # Template for arrays whose names the sender chooses (weights); its `name` is ignored.
+    any_arrays: Array | None = None
+    # One self-contained frame instead of header + array frames: a CONFLATE subscriber keeps only the last
+    # frame it received, so a multipart message would reach it torn.
+    one_frame: bool = False
+
+    def field(self, name: str) -> Field | None:
+        return next((f for f in self.fields if f.name == name), None)
+
+    def array(self, name: str) -> Array | None:
+        return next((a for a in self.arrays if a.name == name), None)
+
+
+# Shared dimensions of an episode batch: N episodes, S steps in all, F = S + N frames, V view side,
+# L mission length.
+_N = Dim(1, MAX_EPISODES, "N")
+_S = Dim(1, MAX_FRAMES, "S")
+_F = Dim(2, MAX_FRAMES, "F")
+_V = Dim(3, MAX_VIEW, "V")
+_L = Dim(1, MAX_MISSION_LEN, "L")
+
+_ROLE = Field("role", "name", max_len=32)
+_ID = Field("id", "int", 0, MAX_ID)
+
+_SPECS: tuple[MessageSpec, ...] = (
+    MessageSpec("hello", fields=(
+        _ROLE,
+        Field("host", "str", max_len=255),
+        Field("pid", "int", 0, MAX_ID),
+        Field("protocol", "int", 0, 1 << 16),
+    )),
+    MessageSpec("welcome", fields=(
+        Field("config", "tree", max_len=1024),
+        Field("endpoints", "strmap", max_len=64),
+        Field("protocol", "int", 0, 1 << 16),
+        Field("index", "int", 0, MAX_ID),  # the role's assigned index, e.g. the actor id
+    )),
+    MessageSpec("refuse", fields=(
+        Field("reason", "str", max_len=2048),
+        Field("protocol", "int", 0, 1 << 16, required=False),  # the refuser's version, to explain a mismatch
+    )),
+    MessageSpec("register", fields=(
+        _ROLE,
+        Field("endpoint", "str", max_len=255),
+    )),
+    MessageSpec("episodes", fields=(
+        Field("count", "int", 1, MAX_EPISODES, sym="N"),
+    ), arrays=(
+        Array("frames", "uint8", (_F, _V, _V, exact(4)), 0, VIEW_CHANNEL_MAX),
+        Array("actions", "uint8", (_S,), 0, N_ACTIONS - 1),
+        Array("rewards", "float32", (_S,), 0.0, 1.0),
+        Array("lengths", "int32", (_N,), 1, MAX_STEPS),
+        Array("mission", "int64", (_N, _L), 0, MAX_TOKEN),
+        Array("outcome", "uint8", (_N,), 0, N_OUTCOMES - 1),
+        Array("picked", "int8", (_N, exact(4)), -1, ATTR_MAX),
+        Array("goal", "int8", (_N, exact(4)), -1, ATTR_MAX),
+        Array("relabelled", "uint8", (_N,), 0, 1),
+        Array("actor_id", "int32", (_N,), 0, MAX_ID),
+        Array("weights_version", "int64", (_N,), 0, MAX_COUNTER),
+    )),
+    MessageSpec("weights", fields=(
+        Field("version", "int", 0, MAX_COUNTER),
+    ), any_arrays=Array("*", "float32", None), one_frame=True),
+    MessageSpec("heartbeat", fields=(
+        _ROLE, _ID,
+        Field("state", "name", max_len=64),
+        Field("counters", "numbers", max_len=256),
+    )),
+    MessageSpec("stats", fields=(
+        _ROLE, _ID,
+        Field("values", "flat", max_len=512),
+    )),
+    MessageSpec("stop", fields=(
+        Field("reason", "str", max_len=2048, required=False, default=""),
+    )),
+)
+
+SPECS: dict[str, MessageSpec] = {spec.type: spec for spec in _SPECS}
+MESSAGE_TYPES: tuple[str, ...] = tuple(SPECS)

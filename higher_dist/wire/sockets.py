@@ -1,0 +1,200 @@
+"""The one place that creates sockets and sets their options, and the send/receive helpers every role uses.
+
+Receiving never raises on a bad message: `recv_message` drops it, counts it by reason in a `RejectCounter`
+and logs it (rate-limited), because the design says one corrupt or hostile peer must not stop a role.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any, Mapping, Sequence
+
+import zmq
+
+from higher_dist.wire.codec import Message, WireError, check_weight_shapes, decode
+from higher_dist.wire.schema import MAX_FRAME_BYTES
+
+log = logging.getLogger("higher_dist.wire")
+
+DEFAULT_HWM = 100  # messages; an episodes message is a batch, so 100 already buffers thousands of episodes
+RECONNECT_IVL_MS = 100
+RECONNECT_IVL_MAX_MS = 5000  # exponential backoff up to this while a peer is down
+HEARTBEAT_IVL_MS = 1000  # ZMTP pings notice a dead TCP peer long before the kernel would
+HEARTBEAT_TIMEOUT_MS = 5000
+
+
+def make_socket(ctx: zmq.Context, kind: int, *, bind: str | Sequence[str] | None = None,
+                connect: str | Sequence[str] | None = None, hwm: int = DEFAULT_HWM, linger_ms: int = 200,
+                conflate: bool = False, identity: bytes | str | None = None, curve: Any = None,
+                subscribe: bytes | None = b"", immediate: bool | None = None,
+                max_msg_bytes: int = MAX_FRAME_BYTES) -> zmq.Socket:
+    """A socket with the project's options set, then bound and/or connected.
+
+    curve: an object with `apply(socket)` (security.CurveServer / CurveClient), applied before bind/connect.
+    conflate: keep only the newest message (weights SUB); works with one-frame messages only.
+    immediate: queue only to completed connections, so a PUSH blocks (backpressure) instead of piling
+        messages onto a peer that is not there; default on for connecting PUSH sockets.
+    subscribe: the SUB topic prefix (b"" = everything); ignored by other kinds.
+    """
+    sock = ctx.socket(kind)
+    try:
+        sock.setsockopt(zmq.LINGER, linger_ms)
+        sock.setsockopt(zmq.SNDHWM, hwm)
+        sock.setsockopt(zmq.RCVHWM, hwm)
+        sock.setsockopt(zmq.RECONNECT_IVL, RECONNECT_IVL_MS)
+        sock.setsockopt(zmq.RECONNECT_IVL_MAX, RECONNECT_IVL_MAX_MS)
+        sock.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_IVL_MS)
+        sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
+        sock.setsockopt(zmq.HEARTBEAT_TTL, HEARTBEAT_TIMEOUT_MS)
+        # libzmq drops an over-size frame and the connection before it is ever buffered in Python.
+        sock.setsockopt(zmq.MAXMSGSIZE, max_msg_bytes)
+        if conflate:
+            sock.setsockopt(zmq.CONFLATE, 1)
+        if immediate is None:
+            immediate = kind == zmq.PUSH and connect is not None
+        if immediate:
+            sock.setsockopt(zmq.IMMEDIATE, 1)
+        if identity is not None:
+            sock.setsockopt(zmq.ROUTING_ID, identity.encode() if isinstance(identity, str) else identity)
+        if kind == zmq.SUB and subscribe is not None:
+            sock.setsockopt(zmq.SUBSCRIBE, subscribe)
+        if curve is not None:
+            curve.apply(sock)
+        for endpoint in _endpoints(bind):
+            sock.bind(endpoint)
+        for endpoint in _endpoints(connect):
+            sock.connect(endpoint)
+    except Exception:
+        sock.close(linger=0)
+        raise
+    return sock
+
+
+def _endpoints(value: str | Sequence[str] | None) -> list[str]:
+    if value is None:
+        return []
+    return [value] if isinstance(value, str) else list(value)
+
+
+def bind_random(socket: zmq.Socket, host: str = "127.0.0.1") -> str:
+    """Bind to a free TCP port on `host` and return the endpoint to connect to (tests, local clusters)."""
+    port = socket.bind_to_random_port(f"tcp://{host}")
+    return f"tcp://{host}:{port}"
+
+
+class RejectCounter:
+    """Counts dropped messages by reason and logs them at most once per `log_every_s` per reason."""
+
+    def __init__(self, log_every_s: float = 10.0, logger: logging.Logger | None = None):
+        self.log_every_s = log_every_s
+        self.logger = logger or log
+        self._counts: dict[str, int] = {}
+        self._last_log: dict[str, float] = {}
+        self._suppressed: dict[str, int] = {}
+        self._lock = threading.Lock()  # roles may receive on more than one thread
+
+    def add(self, reason: str, detail: str = "", where: str = "") -> None:
+        now = time.monotonic()
+        with self._lock:
+            self._counts[reason] = self._counts.get(reason, 0) + 1
+            if now - self._last_log.get(reason, -1e18) < self.log_every_s:
+                self._suppressed[reason] = self._suppressed.get(reason, 0) + 1
+                return
+            suppressed = self._suppressed.pop(reason, 0)
+            self._last_log[reason] = now
+        more = f" (+{suppressed} more since the last report)" if suppressed else ""
+        self.logger.warning("dropped invalid message%s: %s %s%s", f" on {where}" if where else "", reason,
+                            detail, more)
+
+    def counts(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._counts)
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self._counts.values())
+
+
+REJECTS = RejectCounter()  # the process-wide default; roles report REJECTS.counts() in their stats
+
+
+def send(socket: zmq.Socket, frames: Sequence[Any], flags: int = 0) -> bool:
+    """Send encoded frames; False (not an exception) when a non-blocking send meets a full queue."""
+    try:
+        socket.send_multipart(frames, flags=flags, copy=False)
+        return True
+    except zmq.Again:
+        return False
+
+
+def send_routed(socket: zmq.Socket, identity: bytes, frames: Sequence[Any], flags: int = 0) -> bool:
+    """ROUTER -> DEALER: the peer's identity frame, then the message."""
+    return send(socket, [identity, *frames], flags)
+
+
+def _recv_frames(socket: zmq.Socket, timeout_ms: int) -> list[zmq.Frame] | None:
+    if timeout_ms >= 0 and not socket.poll(timeout_ms, zmq.POLLIN):
+        return None
+    try:
+        return socket.recv_multipart(flags=zmq.NOBLOCK, copy=False)
+    except zmq.Again:
+        return None
+
+
+def _decode_or_count(frames: Sequence[Any], counter: RejectCounter, where: str) -> Message | None:
+    try:
+        return decode(frames)
+    except WireError as exc:
+        counter.add(exc.reason, exc.detail, where)
+    except Exception as exc:  # a decoder bug must not kill a role either; count it loudly
+        counter.add("internal", f"{type(exc).__name__}: {exc}", where)
+    return None
+
+
+def recv_message(socket: zmq.Socket, timeout_ms: int = 0, counter: RejectCounter | None = None,
+                 where: str = "") -> Message | None:
+    """The next valid message, or None on timeout or when the message was invalid (counted, logged).
+
+    timeout_ms: 0 polls without blocking, -1 waits forever.
+    """
+    frames = _recv_frames(socket, timeout_ms)
+    if frames is None:
+        return None
+    return _decode_or_count(frames, counter or REJECTS, where)
+
+
+def recv_routed(socket: zmq.Socket, timeout_ms: int = 0, counter: RejectCounter | None = None,
+                where: str = "") -> tuple[bytes, Message] | None:
+    """ROUTER side: (peer identity, message), or None as recv_message."""
+    frames = _recv_frames(socket, timeout_ms)
+    if frames is None:
+        return None
+    if len(frames) < 2:
+        (counter or REJECTS).add("frame_count", "routed message without identity or body", where)
+        return None
+    msg = _decode_or_count(frames[1:], counter or REJECTS, where)
+    return None if msg is None else (frames[0].bytes, msg)
+
+
+def recv_weights(socket: zmq.Socket, expected: Mapping[str, Sequence[int]] | None = None, timeout_ms: int = 0,
+                 counter: RejectCounter | None = None, where: str = "weights"
+                 ) -> tuple[int, dict[str, Any]] | None:
+    """(version, arrays) of the newest weights on a CONFLATE SUB socket, or None (nothing new, or invalid).
+
+    The arrays are writable copies, as from codec.decode_weights.
+    """
+    msg = recv_message(socket, timeout_ms, counter, where)
+    if msg is None:
+        return None
+    counter = counter or REJECTS
+    if msg.type != "weights":
+        counter.add("unknown_type", f"expected weights, got {msg.type}", where)
+        return None
+    try:
+        check_weight_shapes(msg.arrays, expected)
+    except WireError as exc:
+        counter.add(exc.reason, exc.detail, where)
+        return None
+    return msg.fields["version"], {name: arr.copy() for name, arr in msg.arrays.items()}

@@ -1,0 +1,186 @@
+"""The dashboard: rendering of recorded telemetry, sparklines, and the live loop over a real socket."""
+from __future__ import annotations
+
+import io
+import threading
+import time
+
+import msgpack
+import pytest
+import zmq
+from rich.console import Console
+
+from higher_dist.roles.dashboard import decode_record, run_dashboard, telemetry_endpoint_for
+from higher_dist.roles.dashboard_view import DashboardState, render, sparkline
+
+
+def _roles() -> list[dict]:
+    return [
+        {"role": "actor", "id": 1, "host": "nodeB", "pid": 4321, "state": "dead", "heartbeat_age_s": 31.0,
+         "frames_per_s": None, "weights_lag": 7, "restarts": 2, "rejected": 0},
+        {"role": "learner", "id": 0, "host": "nodeA", "pid": 1000, "state": "alive", "heartbeat_age_s": 0.1,
+         "frames_per_s": None, "weights_lag": None, "restarts": 0, "rejected": 0},
+        {"role": "relabeler", "id": 0, "host": "nodeA", "pid": 1001, "state": "alive", "heartbeat_age_s": 0.4,
+         "frames_per_s": None, "weights_lag": None, "restarts": 0, "rejected": 3},
+        {"role": "actor", "id": 0, "host": "nodeA", "pid": 1002, "state": "alive", "heartbeat_age_s": 0.2,
+         "frames_per_s": 812.5, "weights_lag": 1, "restarts": 0, "rejected": 0},
+    ]
+
+
+def recorded_stream(n: int = 10) -> list[dict]:
+    """A run as the learner would publish it: early records sparse, later ones complete."""
+    stream = [{"time": 1000.0, "elapsed_s": 0.5, "preset": "higher", "frames": 0}]
+    for i in range(1, n):
+        stream.append({
+            "time": 1000.0 + 2 * i, "elapsed_s": 2.0 * i, "preset": "higher", "world": "fetch_attr",
+            "frames": 123_456 * i, "frames_budget": 5_000_000, "updates": 1000 * i, "episodes": 50 * i,
+            "success_rate_train": i / (n - 1), "success_rate_eval_train": 0.5, "success_rate_eval_heldout": 0.25,
+            "relabelled_episodes": 10 * i, "generator_val_accuracy": 0.1 * i if i > 2 else None,
+            "relabel_dataset_size": 1500, "relabel_gate_open": True, "relabels_per_s": 4.5,
+            "relabel_accuracy": 0.8125, "rejected_messages": 3, "frames_per_s": 1500.0, "updates_per_s": 2.5,
+            "replay_ratio": 8.0, "loss": 0.01234, "q_mean": 0.4567, "epsilon_mean": 0.1, "replay_size": 1000,
+            "replay_success": 200, "replay_wrong_pick": 300, "replay_timeout": 400, "replay_relabelled": 100,
+            "weights_version": 42, "roles": _roles(),
+        })
+    return stream
+
+
+def export(renderable) -> str:
+    console = Console(record=True, width=140, file=io.StringIO(), color_system=None)
+    console.print(renderable)
+    return console.export_text()
+
+
+def test_sparkline_known_input():
+    assert sparkline(range(8), 8) == "▁▂▃▄▅▆▇█"
+    assert sparkline([0.0, 0.5, 1.0], 3, lo=0.0, hi=1.0) == "▁▅█"
+    # Only the most recent `width` values are drawn.
+    assert sparkline(range(100), 4) == "▁▃▆█"
+    assert sparkline([None, 1, float("nan"), 3], 4) == " ▁ █"
+    assert sparkline([], 5) == "" and sparkline([1, 2], 0) == ""
+    assert sparkline([3, 3, 3], 3) == "▁▁▁"
+    assert sparkline([5.0], 1, lo=0, hi=1) == "█"  # clipped to the fixed scale
+
+
+def test_render_recorded_stream():
+    state = DashboardState(history_len=120)
+    for k, record in enumerate(recorded_stream()):
+        state.update(record, now=100.0 + k)
+    text = export(render(state, now=110.0))
+    assert "1,111,104 / 5,000,000" in text  # frames of the last record, against the budget
+    assert "100.0%" in text  # success on training goals
+    assert "50.0%" in text and "25.0%" in text  # eval on train and held-out goals
+    assert "GONE (dead)" in text and "1 dead" in text and "3 alive" in text
+    assert "nodeB" in text and "4321" in text
+    assert "open" in text and "81.2%" in text and "1,500" in text  # relabeler gate, accuracy, dataset
+    for figure in ("200", "20.0%", "300", "30.0%", "400", "40.0%", "100", "10.0%"):
+        assert figure in text  # replay composition: counts and shares
+    assert "1,500/s" in text and "2.50/s" in text and "0.0123" in text and "43m13s" in text and "22%" in text
+    assert "▁" in text and "█" in text  # the success sparkline climbs from 0 to 1
+    assert "no telemetry" not in text and "waiting" not in text
+
+
+def test_dead_role_row_is_red():
+    state = DashboardState()
+    state.update(recorded_stream()[-1], now=0.0)
+    console = Console(record=True, width=140, file=io.StringIO(), force_terminal=True, color_system="truecolor")
+    console.print(render(state, now=0.5))
+    html = console.export_html(inline_styles=True)
+    assert "GONE (dead)" in html and "color: #800000" in html or "color: #ff0000" in html
+
+
+@pytest.mark.parametrize("record", [
+    {},
+    {"frames": None, "frames_budget": None, "roles": None, "relabel_gate_open": None},
+    {"frames": 10, "frames_budget": 0, "frames_per_s": 0.0, "roles": [{"role": "actor"}, "junk"]},
+    {"frames": "many", "loss": float("nan"), "replay_success": -1, "roles": [{"state": "dead", "id": "x"}]},
+])
+def test_missing_or_odd_keys_render(record):
+    state = DashboardState()
+    state.update(record, now=0.0)
+    text = export(render(state, now=1.0))
+    assert "Cluster" in text and "Replay" in text and "-" in text
+
+
+def test_waiting_and_stale_banners():
+    state = DashboardState(stale_after_s=5.0, source="tcp://127.0.0.1:5558")
+    assert "waiting for telemetry from tcp://127.0.0.1:5558" in export(render(state, now=0.0))
+    state.update(recorded_stream()[-1], now=10.0)
+    assert "no telemetry" not in export(render(state, now=14.0))
+    text = export(render(state, now=22.4))
+    assert "no telemetry for 12 s" in text and "1,111,104" in text  # last figures still shown
+
+
+def test_histories_are_bounded():
+    state = DashboardState(history_len=5)
+    for k in range(50):
+        state.update({"success_rate_train": k / 50, "generator_val_accuracy": None}, now=float(k))
+    assert len(state.success_history) == 5 and len(state.generator_history) == 5
+    state.update("not a dict")  # type: ignore[arg-type]
+    assert state.garbage_frames == 1 and state.records_seen == 50
+
+
+def test_telemetry_endpoint_for():
+    assert telemetry_endpoint_for("tcp://10.0.0.5:5555") == "tcp://10.0.0.5:5558"
+    assert telemetry_endpoint_for("tcp://node-a:7000") == "tcp://node-a:7003"
+    for bad in ("10.0.0.5:5555", "tcp://host", "tcp://host:notaport", "ipc:///tmp/x", "", "tcp://h:65534"):
+        with pytest.raises(ValueError):
+            telemetry_endpoint_for(bad)
+
+
+def test_decode_record():
+    assert decode_record(msgpack.packb({"frames": 3})) == {"frames": 3}
+    assert decode_record(msgpack.packb({1: "int keys are fine"})) == {1: "int keys are fine"}
+    assert decode_record(b"\xc1garbage") is None
+    assert decode_record(msgpack.packb([1, 2])) is None  # valid msgpack, but not a record
+    assert decode_record(b"") is None
+
+
+def test_run_dashboard_over_a_real_socket():
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    endpoint = f"tcp://127.0.0.1:{port}"
+    state = DashboardState()
+    out = io.StringIO()
+    result: dict = {}
+
+    def dashboard() -> None:
+        result["rc"] = run_dashboard(endpoint, refresh_per_s=20.0, stop_after_s=10.0,
+                                     console=Console(file=out, width=140), state=state)
+
+    thread = threading.Thread(target=dashboard, daemon=True)
+    started = time.monotonic()
+    thread.start()
+    try:
+        records = recorded_stream(4)
+        # PUB drops everything until the subscription arrives (slow joiner): resend the first
+        # record until the dashboard has seen it, then play the rest of the script once.
+        while state.records_seen == 0 and time.monotonic() - started < 5:
+            pub.send(msgpack.packb(records[0]))
+            time.sleep(0.05)
+        assert state.records_seen > 0, "the dashboard never received a record"
+        # Pauses longer than the dashboard's 50 ms poll: with CONFLATE only the newest frame waits.
+        for frame in [msgpack.packb(r) for r in records[1:]] + [b"\xc1\xc1 not msgpack"]:
+            pub.send(frame)
+            time.sleep(0.2)
+        while thread.is_alive() and time.monotonic() - started < 8:
+            pub.send(msgpack.packb({"type": "stop"}))
+            thread.join(0.1)
+    finally:
+        pub.close(0)
+        ctx.term()
+    assert not thread.is_alive() and result["rc"] == 0
+    assert time.monotonic() - started < 8  # the stop record ended it, not stop_after_s
+    assert state.record["frames"] == records[-1]["frames"]
+    assert state.garbage_frames >= 1
+    assert "370,368" in out.getvalue()  # the final render shows the last record's frames
+
+
+def test_run_dashboard_stops_after_deadline_without_a_publisher():
+    out = io.StringIO()
+    started = time.monotonic()
+    assert run_dashboard("tcp://127.0.0.1:1", refresh_per_s=20.0, stop_after_s=0.3, console=Console(file=out)) == 0
+    assert time.monotonic() - started < 3
+    assert "waiting for telemetry" in out.getvalue()
