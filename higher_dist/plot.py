@@ -200,7 +200,9 @@ def plot_replay(runs: list[Run], out: Path) -> Path:
     axes[0][0].set_ylabel("fraction of replay")
     handles, labels = axes[0][0].get_legend_handles_labels()
     if handles:
-        fig.legend(handles, labels, loc="upper right", fontsize="small")
+        # Below the panels, so it never hides data; bbox_inches="tight" keeps it in the file.
+        fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=len(labels),
+                   fontsize="small")
     fig.suptitle("Replay composition by origin")
     return _save(fig, out)
 
@@ -209,7 +211,7 @@ def _save(fig, out: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig.tight_layout()
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return out
 

@@ -100,7 +100,9 @@ class Supervisor:
             if role.proc is None:
                 if now >= role.next_start and not self.stopping:
                     self.say(f"restarting {role.name} (restart {role.restarts})")
-                    if role.name in ("learner", "relabeler") and "--resume" not in role.argv:
+                    # Restarted stateful roles continue from their checkpoint, once there is one.
+                    has_ckpt = self.run_dir.checkpoint_path(role.name).exists()
+                    if role.name in ("learner", "relabeler") and has_ckpt and "--resume" not in role.argv:
                         role.argv.append("--resume")
                     role.start(log_to_file=role.name != "dashboard")
                 continue

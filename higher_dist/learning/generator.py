@@ -10,6 +10,7 @@ BEG/END; the decoder reads `BEG w1..wn` and is trained to emit `w1..wn END`.
 """
 from __future__ import annotations
 
+import copy
 import math
 from typing import Any
 
@@ -211,7 +212,10 @@ class GeneratorTrainer:
         return self.cfg.min_accuracy <= 0 or self.val_accuracy >= self.cfg.min_accuracy
 
     def state_dict(self) -> dict[str, Any]:
-        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(),
+        """A snapshot for checkpoints. Deep-copied: torch's state dicts alias the live tensors (and
+        Adam's moments would be shared with whatever loads them), a snapshot must not move."""
+        return {"model": copy.deepcopy(self.model.state_dict()),
+                "optimizer": copy.deepcopy(self.optimizer.state_dict()),
                 "dataset": self.dataset.state_dict(), "rng": self.rng.bit_generator.state,
                 "steps": self.steps, "evaluations": self.evaluations, "val_accuracy": self.val_accuracy,
                 "last_eval": dict(self.last_eval), "last_loss": self.last_loss}

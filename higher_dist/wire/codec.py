@@ -20,7 +20,6 @@ of the received frames.
 from __future__ import annotations
 
 import math
-import re
 import struct
 import sys
 from dataclasses import dataclass, field
@@ -30,38 +29,13 @@ import msgpack
 import numpy as np
 
 from higher_dist.wire import schema as S
-
-REASONS = (
-    "bad_frames",  # not a list of byte buffers
-    "bad_msgpack",  # header is not valid msgpack
-    "header",  # header is not a map with the expected keys and types
-    "version",  # schema version differs from ours
-    "unknown_type",
-    "field",  # missing, extra or ill-typed header field
-    "frame_count",  # truncated or extra frames, or one-frame/multipart form not matching the type
-    "dtype",
-    "shape",  # rank or dimension outside the schema, shape vs byte length, inconsistent shared dims
-    "size",  # declared or actual byte sizes over the caps or not matching the frame
-    "range",  # a value outside its allowed range
-    "nan",  # NaN or infinity where numbers must be finite
-)
+from higher_dist.wire.schema import REASONS, WireError, check_fields  # noqa: F401 (REASONS re-exported)
 
 MAGIC = b"HDW\x01"
 _PREFIX = struct.Struct("<4sI")
 _ALIGN = 8
 _HEADER_KEYS = frozenset(("type", "v", "sender", "seq", "fields", "arrays"))
-_NAME_RE = re.compile(r"[A-Za-z0-9_.:\-]+")
 _MAX_SENDER = 64
-_MAX_FLAT_TEXT = 1024
-
-
-class WireError(ValueError):
-    """An invalid message. `reason` is one of REASONS, fit for counters; `detail` is for humans."""
-
-    def __init__(self, reason: str, detail: str = ""):
-        super().__init__(f"{reason}: {detail}" if detail else reason)
-        self.reason = reason
-        self.detail = detail
 
 
 @dataclass
@@ -88,9 +62,9 @@ def encode(msg_type: str, fields: Mapping[str, Any] | None = None, arrays: Mappi
     if spec is None:
         raise WireError("unknown_type", repr(msg_type))
     plain_fields = {name: _plain(value) for name, value in (fields or {}).items()}
-    checked = _check_fields(spec, plain_fields)
+    checked = check_fields(spec, plain_fields)
     arrays = arrays or {}
-    wire_arrays = [(name, _little_endian(np.ascontiguousarray(arr))) for name, arr in arrays.items()]
+    wire_arrays = [(name, _little_endian(_contiguous(arr))) for name, arr in arrays.items()]
     descriptors = [[name, arr.dtype.str, list(arr.shape), arr.nbytes] for name, arr in wire_arrays]
     _check_descriptors(spec, descriptors, checked)
     header = msgpack.packb({"type": msg_type, "v": S.PROTOCOL_VERSION, "sender": _check_sender(sender),
@@ -107,6 +81,12 @@ def encode_weights(version: int, arrays: Mapping[str, np.ndarray], sender: str =
     return encode("weights", {"version": version}, as_float, sender, seq)[0]
 
 
+def _contiguous(arr: Any) -> np.ndarray:
+    # Not np.ascontiguousarray: it turns 0-d arrays into shape (1,).
+    arr = np.asarray(arr)
+    return arr if arr.flags.c_contiguous else arr.copy(order="C")
+
+
 def _little_endian(arr: np.ndarray) -> np.ndarray:
     order = arr.dtype.byteorder
     if order == ">" or (order == "=" and sys.byteorder == "big"):
@@ -119,13 +99,14 @@ def _byte_view(arr: np.ndarray) -> memoryview:
 
 
 def _one_frame(header: bytes, arrays: list[np.ndarray]) -> bytes:
-    offsets, total = _layout(_PREFIX.size + len(header), [arr.nbytes for arr in arrays])
-    out = bytearray(total)
-    out[:_PREFIX.size] = _PREFIX.pack(MAGIC, len(header))
-    out[_PREFIX.size:_PREFIX.size + len(header)] = header
+    offsets, _ = _layout(_PREFIX.size + len(header), [arr.nbytes for arr in arrays])
+    parts: list[bytes | memoryview] = [_PREFIX.pack(MAGIC, len(header)), header]
+    position = _PREFIX.size + len(header)
     for offset, arr in zip(offsets, arrays):
-        out[offset:offset + arr.nbytes] = _byte_view(arr)
-    return bytes(out)
+        parts.append(bytes(offset - position))  # alignment padding
+        parts.append(_byte_view(arr))
+        position = offset + arr.nbytes
+    return b"".join(parts)  # one copy of the payload, straight into the frame
 
 
 def _layout(start: int, sizes: Sequence[int]) -> tuple[list[int], int]:
@@ -169,7 +150,7 @@ def decode(frames: Sequence[Any]) -> Message:
         header_bytes = first
     header = _unpack_header(header_bytes)
     spec = S.SPECS[header["type"]]
-    fields = _check_fields(spec, header["fields"])
+    fields = check_fields(spec, header["fields"])
     descriptors = _check_descriptors(spec, header["arrays"], fields)
     if spec.one_frame != one_frame:
         raise WireError("frame_count", "%s must be sent as %s" % (spec.type, "one frame" if spec.one_frame
@@ -246,7 +227,8 @@ def _unpack_header(data: memoryview) -> dict[str, Any]:
     if type(version) is not int:
         raise WireError("header", "version is missing or not an integer")
     if version != S.PROTOCOL_VERSION:
-        raise WireError("version", "peer speaks version %d, we speak %d" % (version, S.PROTOCOL_VERSION))
+        raise WireError("version", "peer speaks version %d, we speak %d" % (version, S.PROTOCOL_VERSION),
+                        peer_version=version)
     if set(header) != _HEADER_KEYS:
         raise WireError("header", "keys %s" % sorted(map(str, header))[:8])
     if not isinstance(header["type"], str) or header["type"] not in S.SPECS:
@@ -268,105 +250,6 @@ def _check_seq(seq: Any, reason: str = "field") -> int:
     if type(seq) is not int or not 0 <= seq <= S.MAX_COUNTER:
         raise WireError(reason, "seq must be an integer in [0, 2^63)")
     return seq
-
-
-# ----------------------------------------------------------------------------------------------- header fields
-
-def _check_fields(spec: S.MessageSpec, fields: dict[str, Any]) -> dict[str, Any]:
-    """The fields with defaults filled in, or WireError."""
-    known = {f.name for f in spec.fields}
-    extra = [name for name in fields if name not in known]
-    if extra:
-        raise WireError("field", "%s: unexpected fields %s" % (spec.type, [str(x)[:32] for x in extra[:5]]))
-    out = {}
-    for f in spec.fields:
-        if f.name not in fields:
-            if f.required:
-                raise WireError("field", "%s: missing field %s" % (spec.type, f.name))
-            out[f.name] = f.default
-            continue
-        out[f.name] = _check_value(spec.type, f, fields[f.name])
-    return out
-
-
-def _check_value(msg_type: str, f: S.Field, value: Any) -> Any:
-    where = "%s.%s" % (msg_type, f.name)
-    kind = f.kind
-    if kind in ("int", "float"):
-        number = _number(value, where, integer=kind == "int")
-        if (f.lo is not None and number < f.lo) or (f.hi is not None and number > f.hi):
-            raise WireError("range", "%s=%r outside [%s, %s]" % (where, number, f.lo, f.hi))
-        return number
-    if kind == "bool":
-        if not isinstance(value, bool):
-            raise WireError("field", "%s: expected true or false" % where)
-        return value
-    if kind in ("str", "name"):
-        return _text(value, where, f.max_len, identifier=kind == "name")
-    if kind == "tree":
-        _tree(value, where, 0, f.max_len)
-        if not isinstance(value, dict):
-            raise WireError("field", "%s: expected a map" % where)
-        return value
-    if kind in ("strmap", "numbers", "flat"):
-        if not isinstance(value, dict) or len(value) > f.max_len:
-            raise WireError("field", "%s: expected a map of at most %d entries" % (where, f.max_len))
-        for key, item in value.items():
-            _text(key, where, S.MAX_KEY_LEN)
-            if kind == "strmap":
-                _text(item, "%s[%s]" % (where, key), 1024)
-            elif kind == "numbers":
-                _number(item, "%s[%s]" % (where, key), integer=False)
-            elif not (item is None or isinstance(item, bool)):
-                if isinstance(item, str):
-                    _text(item, "%s[%s]" % (where, key), _MAX_FLAT_TEXT)
-                else:
-                    _number(item, "%s[%s]" % (where, key), integer=False)
-        return value
-    raise AssertionError("schema declares an unknown field kind %r" % kind)  # a bug in schema.py
-
-
-def _number(value: Any, where: str, integer: bool) -> int | float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or (integer and not isinstance(value, int)):
-        raise WireError("field", "%s: expected %s" % (where, "an integer" if integer else "a number"))
-    if isinstance(value, float) and not math.isfinite(value):
-        raise WireError("nan", "%s is not finite" % where)
-    return value
-
-
-def _text(value: Any, where: str, max_len: int, identifier: bool = False) -> str:
-    if not isinstance(value, str) or len(value) > max_len:
-        raise WireError("field", "%s: expected text of at most %d characters" % (where, max_len))
-    if identifier and not _NAME_RE.fullmatch(value):
-        raise WireError("field", "%s: expected a name of letters, digits and _.:-" % where)
-    return value
-
-
-def _tree(value: Any, where: str, depth: int, max_len: int) -> None:
-    """Plain nested data (the config): maps with text keys, lists, text, finite numbers, bools, nil."""
-    if depth > S.MAX_TREE_DEPTH:
-        raise WireError("field", "%s: nested deeper than %d" % (where, S.MAX_TREE_DEPTH))
-    if value is None or isinstance(value, (bool, int)):
-        return
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise WireError("nan", "%s is not finite" % where)
-        return
-    if isinstance(value, str):
-        _text(value, where, 4096)
-        return
-    if isinstance(value, (list, dict)) and len(value) > max_len:
-        raise WireError("field", "%s: more than %d entries" % (where, max_len))
-    if isinstance(value, list):
-        for item in value:
-            _tree(item, where, depth + 1, max_len)
-        return
-    if isinstance(value, dict):
-        for key, item in value.items():
-            _text(key, where, S.MAX_KEY_LEN)
-            _tree(item, "%s.%s" % (where, key), depth + 1, max_len)
-        return
-    raise WireError("field", "%s: unsupported value of type %s" % (where, type(value).__name__))
 
 
 # ------------------------------------------------------------------------------------------------------ arrays

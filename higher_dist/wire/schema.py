@@ -1,8 +1,10 @@
 """The declarative schema of the higher-dist wire protocol: every message type, its header fields and its arrays.
 
 The codec (`codec.py`) reads these tables and nothing else, so adding a message type is one `MessageSpec`
-entry in `_SPECS`. Limits are deliberately tight: a peer that declares a size outside them is refused before
-any memory is touched, which is what keeps a corrupt or hostile message from costing more than its bytes.
+entry in `_SPECS`. The checks of header field values live here too, next to the field kinds they define, with
+`WireError`, the one exception every validation failure raises. Limits are deliberately tight: a peer that
+declares a size outside them is refused before any memory is touched, which is what keeps a corrupt or hostile
+message from costing more than its bytes.
 
 Value ranges follow docs/architecture.md (view channels, actions, outcomes, attribute indices). The vocabulary
 is owned by world/, which this module must not import: tokens are only capped here at `MAX_TOKEN`, and the
@@ -10,6 +12,8 @@ exact bound (`< vocab_size`) is checked by `episodes.unpack_episodes`.
 """
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass
 from typing import Any, Union
 
@@ -18,6 +22,36 @@ import numpy as np
 from higher_dist.config import COLORS, SHADES, SIZES, TYPES
 
 PROTOCOL_VERSION = 1
+
+REASONS = (
+    "bad_frames",  # not a list of byte buffers
+    "bad_msgpack",  # header is not valid msgpack
+    "header",  # header is not a map with the expected keys and types
+    "version",  # schema version differs from ours
+    "unknown_type",
+    "field",  # missing, extra or ill-typed header field
+    "frame_count",  # truncated or extra frames, or one-frame/multipart form not matching the type
+    "dtype",
+    "shape",  # rank or dimension outside the schema, shape vs byte length, inconsistent shared dims
+    "size",  # declared or actual byte sizes over the caps or not matching the frame
+    "range",  # a value outside its allowed range
+    "nan",  # NaN or infinity where numbers must be finite
+)
+
+
+class WireError(ValueError):
+    """An invalid message. `reason` is one of REASONS, fit for counters; `detail` is for humans.
+
+    For reason "version", `peer_version` is the version the peer speaks, so that the learner can answer
+    a hello from another version with a clear `refuse` instead of silence.
+    """
+
+    def __init__(self, reason: str, detail: str = "", peer_version: int | None = None):
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+        self.detail = detail
+        self.peer_version = peer_version
+
 
 # Size caps. A frame larger than MAX_FRAME_BYTES never reaches Python: sockets.make_socket sets MAXMSGSIZE.
 MAX_ARRAY_BYTES = 64 << 20  # one array (one raw frame)
@@ -144,6 +178,8 @@ _SPECS: tuple[MessageSpec, ...] = (
         Field("host", "str", max_len=255),
         Field("pid", "int", 0, MAX_ID),
         Field("protocol", "int", 0, 1 << 16),
+        # The index a role asks for (an actor's id fixes its epsilon across restarts); -1: assign one.
+        Field("index", "int", -1, MAX_ID, required=False, default=-1),
     )),
     MessageSpec("welcome", fields=(
         Field("config", "tree", max_len=1024),
@@ -179,7 +215,7 @@ _SPECS: tuple[MessageSpec, ...] = (
     ), any_arrays=Array("*", "float32", None), one_frame=True),
     MessageSpec("heartbeat", fields=(
         _ROLE, _ID,
-        Field("state", "name", max_len=64),
+        Field("state", "str", max_len=64),
         Field("counters", "numbers", max_len=256),
     )),
     MessageSpec("stats", fields=(
@@ -193,3 +229,106 @@ _SPECS: tuple[MessageSpec, ...] = (
 
 SPECS: dict[str, MessageSpec] = {spec.type: spec for spec in _SPECS}
 MESSAGE_TYPES: tuple[str, ...] = tuple(SPECS)
+
+
+# ------------------------------------------------------------------------------------- checking header fields
+
+_NAME_RE = re.compile(r"[A-Za-z0-9_.:\-]+")
+_MAX_FLAT_TEXT = 1024
+
+
+def check_fields(spec: MessageSpec, fields: dict[str, Any]) -> dict[str, Any]:
+    """The fields with defaults filled in, or WireError."""
+    known = {f.name for f in spec.fields}
+    extra = [name for name in fields if name not in known]
+    if extra:
+        raise WireError("field", "%s: unexpected fields %s" % (spec.type, [str(x)[:32] for x in extra[:5]]))
+    out = {}
+    for f in spec.fields:
+        if f.name not in fields:
+            if f.required:
+                raise WireError("field", "%s: missing field %s" % (spec.type, f.name))
+            out[f.name] = f.default
+            continue
+        out[f.name] = _check_value(spec.type, f, fields[f.name])
+    return out
+
+
+def _check_value(msg_type: str, f: Field, value: Any) -> Any:
+    where = "%s.%s" % (msg_type, f.name)
+    kind = f.kind
+    if kind in ("int", "float"):
+        number = _number(value, where, integer=kind == "int")
+        if (f.lo is not None and number < f.lo) or (f.hi is not None and number > f.hi):
+            raise WireError("range", "%s=%r outside [%s, %s]" % (where, number, f.lo, f.hi))
+        return number
+    if kind == "bool":
+        if not isinstance(value, bool):
+            raise WireError("field", "%s: expected true or false" % where)
+        return value
+    if kind in ("str", "name"):
+        return _text(value, where, f.max_len, identifier=kind == "name")
+    if kind == "tree":
+        _tree(value, where, 0, f.max_len)
+        if not isinstance(value, dict):
+            raise WireError("field", "%s: expected a map" % where)
+        return value
+    if kind in ("strmap", "numbers", "flat"):
+        if not isinstance(value, dict) or len(value) > f.max_len:
+            raise WireError("field", "%s: expected a map of at most %d entries" % (where, f.max_len))
+        for key, item in value.items():
+            _text(key, where, MAX_KEY_LEN)
+            if kind == "strmap":
+                _text(item, "%s[%s]" % (where, key), 1024)
+            elif kind == "numbers":
+                _number(item, "%s[%s]" % (where, key), integer=False)
+            elif not (item is None or isinstance(item, bool)):
+                if isinstance(item, str):
+                    _text(item, "%s[%s]" % (where, key), _MAX_FLAT_TEXT)
+                else:
+                    _number(item, "%s[%s]" % (where, key), integer=False)
+        return value
+    raise AssertionError("schema declares an unknown field kind %r" % kind)  # a bug in schema.py
+
+
+def _number(value: Any, where: str, integer: bool) -> int | float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (integer and not isinstance(value, int)):
+        raise WireError("field", "%s: expected %s" % (where, "an integer" if integer else "a number"))
+    if isinstance(value, float) and not math.isfinite(value):
+        raise WireError("nan", "%s is not finite" % where)
+    return value
+
+
+def _text(value: Any, where: str, max_len: int, identifier: bool = False) -> str:
+    if not isinstance(value, str) or len(value) > max_len:
+        raise WireError("field", "%s: expected text of at most %d characters" % (where, max_len))
+    if identifier and not _NAME_RE.fullmatch(value):
+        raise WireError("field", "%s: expected a name of letters, digits and _.:-" % where)
+    return value
+
+
+def _tree(value: Any, where: str, depth: int, max_len: int) -> None:
+    """Plain nested data (the config): maps with text keys, lists, text, finite numbers, bools, nil."""
+    if depth > MAX_TREE_DEPTH:
+        raise WireError("field", "%s: nested deeper than %d" % (where, MAX_TREE_DEPTH))
+    if value is None or isinstance(value, (bool, int)):
+        return
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise WireError("nan", "%s is not finite" % where)
+        return
+    if isinstance(value, str):
+        _text(value, where, 4096)
+        return
+    if isinstance(value, (list, dict)) and len(value) > max_len:
+        raise WireError("field", "%s: more than %d entries" % (where, max_len))
+    if isinstance(value, list):
+        for item in value:
+            _tree(item, where, depth + 1, max_len)
+        return
+    if isinstance(value, dict):
+        for key, item in value.items():
+            _text(key, where, MAX_KEY_LEN)
+            _tree(item, "%s.%s" % (where, key), depth + 1, max_len)
+        return
+    raise WireError("field", "%s: unsupported value of type %s" % (where, type(value).__name__))

@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Optional, Sequence
 
 import zmq
 
@@ -20,8 +20,6 @@ log = logging.getLogger("higher_dist.wire")
 DEFAULT_HWM = 100  # messages; an episodes message is a batch, so 100 already buffers thousands of episodes
 RECONNECT_IVL_MS = 100
 RECONNECT_IVL_MAX_MS = 5000  # exponential backoff up to this while a peer is down
-HEARTBEAT_IVL_MS = 1000  # ZMTP pings notice a dead TCP peer long before the kernel would
-HEARTBEAT_TIMEOUT_MS = 5000
 
 
 def make_socket(ctx: zmq.Context, kind: int, *, bind: str | Sequence[str] | None = None,
@@ -44,9 +42,9 @@ def make_socket(ctx: zmq.Context, kind: int, *, bind: str | Sequence[str] | None
         sock.setsockopt(zmq.RCVHWM, hwm)
         sock.setsockopt(zmq.RECONNECT_IVL, RECONNECT_IVL_MS)
         sock.setsockopt(zmq.RECONNECT_IVL_MAX, RECONNECT_IVL_MAX_MS)
-        sock.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_IVL_MS)
-        sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
-        sock.setsockopt(zmq.HEARTBEAT_TTL, HEARTBEAT_TIMEOUT_MS)
+        # No ZMTP heartbeats (HEARTBEAT_IVL): with them, libzmq 4.3 aborted the learner with
+        # "Assertion failed: !_io_error (stream_engine_base.cpp:310)" when a peer died mid-run. Liveness
+        # is the application's heartbeat messages instead (roles.registry marks silent roles dead).
         # libzmq drops an over-size frame and the connection before it is ever buffered in Python.
         sock.setsockopt(zmq.MAXMSGSIZE, max_msg_bytes)
         if conflate:
@@ -143,18 +141,27 @@ def _recv_frames(socket: zmq.Socket, timeout_ms: int) -> list[zmq.Frame] | None:
         return None
 
 
-def _decode_or_count(frames: Sequence[Any], counter: RejectCounter, where: str) -> Message | None:
+# Called with the WireError and the peer's identity (ROUTER) or None. Lets a role react to a specific
+# rejection, e.g. the learner answering a hello of another protocol version with `refuse`, or an actor
+# stopping with a clear error when the learner's reply is in a version it cannot read.
+OnReject = Callable[[WireError, Optional[bytes]], None]
+
+
+def _decode_or_count(frames: Sequence[Any], counter: RejectCounter, where: str, on_reject: OnReject | None,
+                     identity: bytes | None = None) -> Message | None:
     try:
         return decode(frames)
     except WireError as exc:
         counter.add(exc.reason, exc.detail, where)
+        if on_reject is not None:
+            on_reject(exc, identity)
     except Exception as exc:  # a decoder bug must not kill a role either; count it loudly
         counter.add("internal", f"{type(exc).__name__}: {exc}", where)
     return None
 
 
 def recv_message(socket: zmq.Socket, timeout_ms: int = 0, counter: RejectCounter | None = None,
-                 where: str = "") -> Message | None:
+                 where: str = "", on_reject: OnReject | None = None) -> Message | None:
     """The next valid message, or None on timeout or when the message was invalid (counted, logged).
 
     timeout_ms: 0 polls without blocking, -1 waits forever.
@@ -162,11 +169,11 @@ def recv_message(socket: zmq.Socket, timeout_ms: int = 0, counter: RejectCounter
     frames = _recv_frames(socket, timeout_ms)
     if frames is None:
         return None
-    return _decode_or_count(frames, counter or REJECTS, where)
+    return _decode_or_count(frames, counter or REJECTS, where, on_reject)
 
 
 def recv_routed(socket: zmq.Socket, timeout_ms: int = 0, counter: RejectCounter | None = None,
-                where: str = "") -> tuple[bytes, Message] | None:
+                where: str = "", on_reject: OnReject | None = None) -> tuple[bytes, Message] | None:
     """ROUTER side: (peer identity, message), or None as recv_message."""
     frames = _recv_frames(socket, timeout_ms)
     if frames is None:
@@ -174,8 +181,9 @@ def recv_routed(socket: zmq.Socket, timeout_ms: int = 0, counter: RejectCounter 
     if len(frames) < 2:
         (counter or REJECTS).add("frame_count", "routed message without identity or body", where)
         return None
-    msg = _decode_or_count(frames[1:], counter or REJECTS, where)
-    return None if msg is None else (frames[0].bytes, msg)
+    identity = frames[0].bytes
+    msg = _decode_or_count(frames[1:], counter or REJECTS, where, on_reject, identity)
+    return None if msg is None else (identity, msg)
 
 
 def recv_weights(socket: zmq.Socket, expected: Mapping[str, Sequence[int]] | None = None, timeout_ms: int = 0,

@@ -41,7 +41,7 @@ RUNNING = -1  # outcome of an env whose episode goes on
 _CELL_DTYPE = np.dtype("<u4")  # little-endian so that the bytes read [kind, color, shade, size]
 _EMPTY_CELL = KIND_EMPTY
 _WALL_CELL = KIND_WALL
-_FORWARD = np.array([(-1, 0), (0, 1), (1, 0), (0, -1)])  # (drow, dcol) per direction
+DIRECTION_VECTORS = np.array([(-1, 0), (0, 1), (1, 0), (0, -1)])  # (drow, dcol): up, right, down, left
 _TURN = np.array([-1, 1, 0, 0])  # direction change per action
 
 
@@ -107,10 +107,10 @@ class BatchedFetchAttr:
         cols = np.arange(view)[None, :]
         ahead, right = view - 1 - rows, cols - view // 2
         right_of = np.array([(0, 1), (1, 0), (0, -1), (-1, 0)])  # the agent's right, per direction
-        dr = ahead[None] * _FORWARD[:, 0, None, None] + right[None] * right_of[:, 0, None, None]
-        dc = ahead[None] * _FORWARD[:, 1, None, None] + right[None] * right_of[:, 1, None, None]
+        dr = ahead[None] * DIRECTION_VECTORS[:, 0, None, None] + right[None] * right_of[:, 0, None, None]
+        dc = ahead[None] * DIRECTION_VECTORS[:, 1, None, None] + right[None] * right_of[:, 1, None, None]
         self._view_offsets = dr * self._height + dc  # (4, V, V)
-        self._front_offsets = _FORWARD[:, 0] * self._height + _FORWARD[:, 1]  # (4,)
+        self._front_offsets = DIRECTION_VECTORS[:, 0] * self._height + DIRECTION_VECTORS[:, 1]  # (4,)
         self._env_base = np.arange(self.batch_size) * self._cells_per_env
         # Flat offsets of the free cells, in the order interior cell k = row * room + col.
         k = np.arange(room * room)
@@ -124,7 +124,6 @@ class BatchedFetchAttr:
         self._dir = np.zeros(self.batch_size, dtype=np.int64)
         self._steps = np.zeros(self.batch_size, dtype=np.int32)
         self._goal = np.full((self.batch_size, 4), -1, dtype=np.int8)
-        self._goal_cell = np.zeros(self.batch_size, dtype=_CELL_DTYPE)
         self._mission = np.zeros((self.batch_size, language.MISSION_LEN), dtype=np.int64)
         self._all = np.arange(self.batch_size)
         # One draw call per env reset for all the small integers: object kinds, goal, direction, wording.
@@ -208,8 +207,6 @@ class BatchedFetchAttr:
         # Replace rather than edit: arrays handed out by earlier steps stay as they were.
         self._goal = self._goal.copy()
         self._goal[envs] = goals
-        self._goal_cell = self._goal_cell.copy()
-        self._goal_cell[envs] = object_cells(goals)
         self._mission = self._mission.copy()
         self._mission[envs] = missions
 

@@ -21,7 +21,7 @@ def write_run(path: Path, preset: str, seed: int, n: int = 20, generator: bool =
             progress = i / (n - 1)
             record = {"time": 1.0e9 + 2 * i, "preset": preset, "frames": frames,
                       "success_rate_train": min(1.0, progress * (0.5 + 0.1 * seed)),
-                      "success_rate_eval_train": None if i < 3 else progress * 0.8,
+                      "success_rate_eval_train": None if i < 3 else progress * (0.7 + 0.1 * seed),
                       "success_rate_eval_heldout": None if i < 3 else progress * 0.6,
                       "replay_success": 10 * i, "replay_wrong_pick": 30 * i, "replay_timeout": 50,
                       "replay_relabelled": 20 * i if generator else 0}

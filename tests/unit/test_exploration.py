@@ -1,0 +1,79 @@
+import numpy as np
+import pytest
+
+from higher_dist.config import ExplorationConfig
+from higher_dist.learning.exploration import actor_epsilons, apex_epsilons, epsilon_greedy, linear_epsilon
+
+
+def test_apex_epsilons_formula():
+    eps = apex_epsilons(5, 0.4, 7.0)
+    expected = [0.4 ** (1 + 7.0 * i / 4) for i in range(5)]
+    np.testing.assert_allclose(eps, expected, rtol=1e-12)
+    assert eps[0] == pytest.approx(0.4) and eps[-1] == pytest.approx(0.4 ** 8)
+    assert np.all(np.diff(eps) < 0)
+    np.testing.assert_array_equal(apex_epsilons(1, 0.3, 7.0), [0.3])
+    with pytest.raises(ValueError):
+        apex_epsilons(0, 0.4, 7.0)
+
+
+def test_linear_schedule_endpoints_and_midpoint():
+    cfg = ExplorationConfig(kind="linear", eps_start=1.0, eps_end=0.05, decay_frames=1000)
+    assert linear_epsilon(0, cfg) == pytest.approx(1.0)
+    assert linear_epsilon(500, cfg) == pytest.approx(0.525)
+    assert linear_epsilon(1000, cfg) == pytest.approx(0.05)
+    assert linear_epsilon(10**9, cfg) == pytest.approx(0.05)
+
+
+def test_apex_actor_epsilons_spread_the_ladder_over_every_env():
+    cfg = ExplorationConfig(kind="apex", eps_base=0.4, apex_alpha=2.0)
+    n_actors, n_envs = 3, 4
+    per_actor = [actor_epsilons(cfg, a, n_actors, n_envs, frame=0) for a in range(n_actors)]
+    ladder = apex_epsilons(n_actors * n_envs, 0.4, 2.0)
+    np.testing.assert_allclose(np.sort(np.concatenate(per_actor)), np.sort(ladder))
+    for eps in per_actor:
+        assert eps.shape == (n_envs,)
+        assert len(np.unique(eps)) == n_envs  # one actor explores at several rates
+    # Fixed rates: the frame does not matter.
+    np.testing.assert_array_equal(actor_epsilons(cfg, 1, n_actors, n_envs, frame=10**7), per_actor[1])
+    # A single actor with a single env gets eps_base.
+    np.testing.assert_array_equal(actor_epsilons(cfg, 0, 1, 1, frame=0), [0.4])
+    with pytest.raises(ValueError):
+        actor_epsilons(cfg, 3, n_actors, n_envs, frame=0)
+
+
+def test_linear_actor_epsilons_share_the_decayed_value():
+    cfg = ExplorationConfig(kind="linear", eps_start=1.0, eps_end=0.1, decay_frames=100)
+    eps = actor_epsilons(cfg, 1, 2, 5, frame=50)
+    np.testing.assert_allclose(eps, np.full(5, 0.55))
+
+
+def test_epsilon_greedy_zero_is_argmax():
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(500, 4))
+    actions = epsilon_greedy(q, np.zeros(500), rng)
+    assert actions.dtype == np.int64
+    np.testing.assert_array_equal(actions, q.argmax(axis=1))
+
+
+def test_epsilon_greedy_one_is_roughly_uniform():
+    rng = np.random.default_rng(1)
+    n = 40_000
+    q = np.tile([0.0, 5.0, 1.0, 2.0], (n, 1))
+    counts = np.bincount(epsilon_greedy(q, np.ones(n), rng), minlength=4)
+    expected = n / 4
+    chi2 = np.sum((counts - expected) ** 2 / expected)
+    assert chi2 < 25.0  # 3 degrees of freedom: 0.999 quantile 16.3
+
+
+def test_epsilon_greedy_per_row_rates():
+    rng = np.random.default_rng(2)
+    n = 20_000
+    q = np.tile([0.0, 0.0, 3.0, 0.0], (n, 1))
+    eps = np.where(np.arange(n) < n // 2, 0.2, 0.8)
+    actions = epsilon_greedy(q, eps, rng)
+    # A random action is the greedy one a quarter of the time: P(non-greedy) = 0.75 * eps.
+    low, high = actions[: n // 2], actions[n // 2:]
+    assert np.mean(low != 2) == pytest.approx(0.15, abs=0.02)
+    assert np.mean(high != 2) == pytest.approx(0.60, abs=0.02)
+    # A scalar epsilon broadcasts.
+    assert epsilon_greedy(q[:10], 0.0, rng).tolist() == [2] * 10

@@ -1,0 +1,179 @@
+"""The instruction generator: model, decoding caps, dataset, accuracy measure, trainer and gate."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from higher_dist.config import GeneratorConfig, WorldConfig
+from higher_dist.bench.generator_bench import make_pairs
+from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
+from higher_dist.learning.generator import GeneratorTrainer, InstructionGenerator, decoder_targets
+from higher_dist.learning.generator_data import GeneratorDataset, semantic_accuracy, validation_flags
+from higher_dist.world.language import BEG, END, MISSION_LEN, PAD, VOCAB, encode, expert_tokens
+
+torch.set_num_threads(1)
+
+# A small generator: the tests need a model that learns in seconds, not the paper's sizes.
+SMALL = GeneratorConfig(embed_dim=8, conv_channels=(16, 16), word_embed_dim=16, hidden=64, lr=3e-3,
+                        batch_size=32, capacity=2000, n_min=100, min_accuracy=0.8)
+# 3 colors x 2 types x 2 shades x 2 sizes = 24 objects, 6 of them held out.
+FEW_OBJECTS = WorldConfig(name="few", room_size=6, n_objects=4, colors=("red", "green", "blue"),
+                          shades=("light", "dark"), sizes=("tiny", "giant"), heldout_count=6)
+
+
+def episode(outcome: int, view_value: int = 7, relabelled: bool = False, length: int = 3) -> Episode:
+    frames = np.zeros((length + 1, 7, 7, 4), np.uint8)
+    frames[length - 1] = view_value  # the frame before the final action: the one the generator reads
+    return Episode(frames=frames, actions=np.zeros(length, np.uint8), rewards=np.zeros(length, np.float32),
+                   mission=encode("fetch a red tiny light key"), outcome=outcome,
+                   picked=np.array([0, 0, 1, 0], np.int8), goal=np.array([0, 0, 1, 0], np.int8),
+                   relabelled=relabelled)
+
+
+# ------------------------------------------------------------------------------------------ model
+
+def test_decoder_targets_append_end_and_keep_pad():
+    missions = torch.as_tensor(np.stack([encode("get a red tiny light key"), encode("fetch a blue dark giant ball")]))
+    targets = decoder_targets(missions)
+    assert targets.shape == (2, MISSION_LEN + 1)
+    assert targets[0, 6] == END and targets[1, 6] == END
+    assert (targets[:, 7:] == PAD).all()
+    assert torch.equal(targets[:, :6], missions[:, :6])
+
+
+def test_greedy_respects_the_length_cap_and_the_mission_encoding():
+    model = InstructionGenerator(SMALL, len(VOCAB))
+    views = torch.as_tensor(np.random.default_rng(0).integers(0, 5, size=(16, 7, 7, 4)), dtype=torch.uint8)
+    for cap in (1, 3, 5, 20):
+        out = model.greedy(views, max_len=cap)
+        assert out.shape == (16, MISSION_LEN) and out.dtype == torch.int64
+        lengths = (out != PAD).sum(dim=1)
+        assert int(lengths.max()) <= min(cap, MISSION_LEN)
+        # Words first, then only PAD; never the BEG/END markers.
+        for row, n in zip(out, lengths):
+            assert (row[:n] != PAD).all() and (row[n:] == PAD).all()
+        assert not ((out == BEG) | (out == END)).any()
+    sampled = model.sample(views, max_len=4, generator=torch.Generator().manual_seed(1), temperature=1.5)
+    again = model.sample(views, max_len=4, generator=torch.Generator().manual_seed(1), temperature=1.5)
+    assert torch.equal(sampled, again)
+    assert int((sampled != PAD).sum(dim=1).max()) <= 4
+
+
+def test_generator_learns_expert_pairs_and_describes_unseen_combinations():
+    rng = np.random.default_rng(0)
+    views, missions, _ = make_pairs(FEW_OBJECTS, 400, "train", rng)
+    trainer = GeneratorTrainer(SMALL, len(VOCAB), seed=0)
+    trainer.dataset.add_many(views, missions)
+    first = trainer.train_steps(20)
+    last = trainer.train_steps(480)
+    assert last < first
+    seen = trainer.evaluate_pairs(*make_pairs(FEW_OBJECTS, 300, "train", rng)[:2])
+    unseen = trainer.evaluate_pairs(*make_pairs(FEW_OBJECTS, 300, "heldout", rng)[:2])
+    assert seen["exact"] >= 0.9, seen
+    # 18 training objects are too few to pin down composition reliably (0.56..0.94 across seeds);
+    # far above chance (1/24) is what this world can show. The benchmark measures it on the paper world.
+    assert unseen["exact"] >= 0.4, unseen
+    val = trainer.evaluate()
+    assert trainer.val_accuracy == val["exact"] and val["n"] == trainer.dataset.n_val
+
+
+# ---------------------------------------------------------------------------------------- dataset
+
+def test_dataset_accepts_only_original_successes_and_reads_the_frame_before_the_pick():
+    ds = GeneratorDataset(capacity=10, val_fraction=0.5, seed=0)
+    assert ds.add_episode(episode(SUCCESS, view_value=5))
+    for refused in (episode(WRONG_PICK), episode(TIMEOUT), episode(SUCCESS, relabelled=True)):
+        assert not ds.add_episode(refused)
+    assert len(ds) == 1
+    slot_view = ds.views[0]
+    assert (slot_view == 5).all()
+    assert np.array_equal(ds.tokens[0], encode("fetch a red tiny light key"))
+
+
+def test_dataset_is_fifo_and_its_split_is_stable():
+    ds = GeneratorDataset(capacity=50, val_fraction=0.3, seed=7)
+    tokens = np.zeros((1, MISSION_LEN), np.int64)
+    # Each pair's view records its insertion number, to follow it through evictions.
+    for i in range(120):
+        tokens[0, 0] = i
+        ds.add(np.full((7, 7, 4), i % 256, np.uint8), tokens[0])
+    assert len(ds) == 50 and ds.inserted == 120
+    kept = np.sort(ds.tokens[:, 0])
+    assert np.array_equal(kept, np.arange(70, 120))  # the oldest 70 were evicted
+    # A pair's split is a function of its insertion number only: stable under eviction and reload.
+    val_views, val_tokens = ds.validation()
+    assert np.array_equal(np.sort(val_tokens[:, 0]),
+                          np.arange(70, 120)[validation_flags(np.arange(70, 120), 7, 0.3)])
+    state = ds.state_dict()
+    clone = GeneratorDataset(capacity=50, val_fraction=0.3, seed=7)
+    clone.load_state_dict(state)
+    for d in (ds, clone):
+        tokens[0, 0] = 999
+        d.add(np.zeros((7, 7, 4), np.uint8), tokens[0])
+    assert np.array_equal(ds.tokens, clone.tokens) and np.array_equal(ds.is_val, clone.is_val)
+    # The fraction holds on large counts and another seed gives another split.
+    flags = validation_flags(np.arange(20_000), 7, 0.3)
+    assert abs(flags.mean() - 0.3) < 0.02
+    assert not np.array_equal(flags, validation_flags(np.arange(20_000), 8, 0.3))
+    # Training batches never contain validation pairs.
+    views, batch_tokens = ds.sample_train(200, np.random.default_rng(0))
+    assert not np.isin(batch_tokens[:, 0], val_tokens[:, 0]).any()
+
+
+# --------------------------------------------------------------------------------------- accuracy
+
+def test_semantic_accuracy_on_hand_made_sequences():
+    truth = np.array([[0, 0, 1, 0], [2, 1, 4, 3], [1, 0, 0, 0], [0, 1, 0, 4]])  # (color, type, shade, size)
+    pred = np.stack([
+        encode("go get a light tiny red key"),  # right, other word order and prefix
+        encode("fetch a blue very_dark large ball"),  # right
+        encode("get a green very_light small key"),  # size wrong (small, not tiny)
+        encode("get a red very_light"),  # does not parse: wrong everywhere
+    ])
+    acc = semantic_accuracy(pred, truth)
+    assert acc["exact"] == pytest.approx(0.5)
+    assert acc["color"] == pytest.approx(0.75) and acc["type"] == pytest.approx(0.75)
+    assert acc["shade"] == pytest.approx(0.75) and acc["size"] == pytest.approx(0.5)
+    assert acc["parse_rate"] == pytest.approx(0.75)
+    assert semantic_accuracy(pred[:0], truth[:0])["exact"] == 0.0
+
+
+# ---------------------------------------------------------------------------------------- trainer
+
+def test_gate_needs_n_min_pairs_and_accuracy_unless_ungated():
+    gated = GeneratorTrainer(replace(SMALL, n_min=20, min_accuracy=0.5), len(VOCAB), seed=0)
+    ungated = GeneratorTrainer(replace(SMALL, n_min=20, min_accuracy=0.0), len(VOCAB), seed=0)
+    for t in (gated, ungated):
+        assert not t.gate_open
+        assert t.observe_episodes([episode(SUCCESS)] * 19 + [episode(WRONG_PICK)] * 5) == 19
+        assert not t.gate_open
+        t.observe_episodes([episode(SUCCESS)])
+    assert ungated.gate_open
+    assert not gated.gate_open  # never evaluated: accuracy 0
+    gated.val_accuracy = 0.6
+    assert gated.gate_open
+
+
+def test_trainer_checkpoint_round_trip_continues_identically():
+    rng = np.random.default_rng(1)
+    views, missions, _ = make_pairs(FEW_OBJECTS, 100, "train", rng)
+    a = GeneratorTrainer(SMALL, len(VOCAB), seed=3)
+    a.dataset.add_many(views, missions)
+    a.train_steps(5)
+    a.evaluate()
+    b = GeneratorTrainer(SMALL, len(VOCAB), seed=99)
+    b.load_state_dict(a.state_dict())
+    assert b.steps == 5 and b.val_accuracy == a.val_accuracy and len(b.dataset) == len(a.dataset)
+    assert a.train_steps(3) == pytest.approx(b.train_steps(3), rel=1e-6)
+    assert np.array_equal(a.generate(views[:20]), b.generate(views[:20]))
+
+
+def test_generate_handles_empty_input_and_expert_tokens_parse():
+    t = GeneratorTrainer(SMALL, len(VOCAB), seed=0)
+    assert t.generate(np.zeros((0, 7, 7, 4), np.uint8)).shape == (0, MISSION_LEN)
+    attrs = np.array([[0, 0, 1, 0]])
+    acc = semantic_accuracy(expert_tokens(attrs, np.random.default_rng(0)), attrs)
+    assert acc["exact"] == 1.0

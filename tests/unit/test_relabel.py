@@ -1,0 +1,210 @@
+"""Relabel strategies: which episodes are relabelled, how, and what the learned one may read."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from higher_dist.config import GeneratorConfig, WorldConfig, make_config
+from higher_dist.bench.generator_bench import make_pairs
+from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
+from higher_dist.learning.relabel import (ExpertRelabel, LearnedRelabel, NoisyExpertRelabel, RelabelStrategy,
+                                          make_relabeler)
+from higher_dist.world.language import VOCAB, expert_tokens, parse
+from higher_dist.world.objects import ObjectSpace
+
+torch.set_num_threads(1)
+
+FEW_OBJECTS = WorldConfig(name="few", room_size=6, n_objects=4, colors=("red", "green", "blue"),
+                          shades=("light", "dark"), sizes=("tiny", "giant"), heldout_count=6)
+GEN = GeneratorConfig(embed_dim=8, conv_channels=(16, 16), word_embed_dim=16, hidden=64, lr=3e-3,
+                      batch_size=32, capacity=2000, n_min=100, min_accuracy=0.8,
+                      train_steps_per_round=100, rounds_per_eval=1)
+
+
+def make_episode(view, mission, outcome, picked, goal, relabelled=False, length=3) -> Episode:
+    frames = np.zeros((length + 1,) + np.shape(view), np.uint8)
+    frames[length - 1] = view
+    rewards = np.zeros(length, np.float32)
+    rewards[-1] = 1.0 if outcome == SUCCESS else 0.0
+    return Episode(frames=frames, actions=np.zeros(length, np.uint8), rewards=rewards,
+                   mission=np.asarray(mission, np.int64), outcome=outcome, picked=picked, goal=goal,
+                   relabelled=relabelled)
+
+
+def wrong_picks(n: int, goal_set: str, seed: int) -> list[Episode]:
+    """Wrong-pick episodes: the picked object is in front in the last view, the goal is another one."""
+    rng = np.random.default_rng(seed)
+    views, _, picked = make_pairs(FEW_OBJECTS, n, goal_set, rng)
+    goals = ObjectSpace(FEW_OBJECTS).all_objects[rng.integers(24, size=n)]
+    missions = expert_tokens(goals, rng)
+    return [make_episode(v, m, WRONG_PICK, p.copy(), g.copy()) for v, m, p, g in zip(views, missions, picked, goals)]
+
+
+def mixed_batch(seed: int = 0) -> tuple[list[Episode], list[Episode]]:
+    """Successes, time-outs and already relabelled copies around 20 wrong picks; returns (all, wrong)."""
+    wrong = wrong_picks(20, "train", seed)
+    others = [replace(wrong[0], outcome=SUCCESS), replace(wrong[1], outcome=TIMEOUT,
+                                                          picked=np.full(4, -1, np.int8)),
+              wrong[2].relabel(wrong[2].mission)]
+    return others[:2] + wrong + others[2:], wrong
+
+
+@pytest.fixture(scope="module")
+def trained() -> LearnedRelabel:
+    """A learned relabeller trained on 400 successful episodes until its gate opened."""
+    strategy = LearnedRelabel(GEN, len(VOCAB), seed=0)
+    rng = np.random.default_rng(0)
+    views, missions, goals = make_pairs(FEW_OBJECTS, 400, "train", rng)
+    strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
+    for _ in range(6):
+        strategy.train(100)  # one round each, evaluated (rounds_per_eval=1)
+        if strategy.trainer.gate_open:
+            break
+    assert strategy.trainer.gate_open, strategy.metrics()
+    return strategy
+
+
+def check_copies(copies: list[Episode], originals: list[Episode]) -> None:
+    ids = {id(ep) for ep in originals}
+    for c in copies:
+        assert c.relabelled and c.outcome == WRONG_PICK and c.rewards[-1] == 1.0
+        assert (c.rewards[:-1] == 0).all() and id(c) not in ids
+    for ep in originals:
+        assert not ep.relabelled and ep.rewards[-1] == 0.0  # originals untouched
+
+
+def test_none_relabels_nothing():
+    batch, wrong = mixed_batch()
+    strategy = RelabelStrategy(seed=0)
+    strategy.observe(batch)
+    assert strategy.relabel(batch) == [] and strategy.train(100) == {}
+    assert strategy.metrics()["considered"] == len(wrong) and strategy.metrics()["relabel_accuracy"] is None
+
+
+def test_expert_relabels_every_wrong_pick_correctly_and_nothing_else():
+    batch, wrong = mixed_batch()
+    strategy = ExpertRelabel(seed=0)
+    copies = strategy.relabel(batch)
+    assert len(copies) == len(wrong)
+    check_copies(copies, wrong)
+    for c, ep in zip(copies, wrong):
+        assert np.array_equal(parse(c.mission), ep.picked)
+        assert np.array_equal(c.frames, ep.frames)
+    assert len({tuple(c.mission[:2]) for c in copies}) > 1  # random prefixes and orders
+    m = strategy.metrics()
+    assert m["relabelled"] == len(wrong) and m["relabel_accuracy"] == 1.0
+
+
+def test_noisy_expert_changes_each_attribute_at_rate_p_times_one_minus_one_over_n():
+    space = ObjectSpace(WorldConfig())
+    p, n = 0.3, 4000
+    rng = np.random.default_rng(0)
+    picked = space.all_objects[rng.integers(len(space.all_objects), size=n)]
+    view = np.zeros((7, 7, 4), np.uint8)
+    episodes = [make_episode(view, np.zeros(10, np.int64), WRONG_PICK, a, a) for a in picked]
+    strategy = NoisyExpertRelabel(space, p, seed=1)
+    copies = strategy.relabel(episodes)
+    assert len(copies) == n
+    described = np.stack([parse(c.mission) for c in copies])
+    changed = (described != picked).mean(axis=0)
+    expected = np.array([p * (1 - 1 / len(space.values(a))) for a in range(4)])
+    assert np.allclose(changed, expected, atol=0.03), (changed, expected)
+    assert strategy.metrics()["relabel_accuracy"] == pytest.approx((described == picked).all(axis=1).mean())
+
+
+def test_learned_relabels_nothing_while_the_gate_is_closed():
+    strategy = LearnedRelabel(GEN, len(VOCAB), seed=0)
+    batch, wrong = mixed_batch()
+    rng = np.random.default_rng(1)
+    views, missions, goals = make_pairs(FEW_OBJECTS, GEN.n_min - 1, "train", rng)
+    strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
+    assert len(strategy.trainer.dataset) == GEN.n_min - 1
+    assert strategy.relabel(batch) == []
+    m = strategy.metrics()
+    assert not m["gate_open"] and m["gated_off"] == len(wrong) and m["relabelled"] == 0
+    # Relabelled copies and failures never enter the generator's dataset.
+    strategy.observe(batch)
+    assert len(strategy.trainer.dataset) == GEN.n_min - 1 + 1  # the one success of the batch
+
+
+def test_learned_with_gate_open_relabels_wrong_picks_only(trained):
+    batch, wrong = mixed_batch(seed=5)
+    before = trained.metrics()
+    copies = trained.relabel(batch)
+    m = trained.metrics()
+    assert len(copies) + m["unparseable"] - before["unparseable"] == len(wrong)
+    assert len(copies) >= 0.9 * len(wrong)
+    check_copies(copies, wrong)
+    frames_of = {ep.frames.tobytes() for ep in wrong}
+    assert all(c.frames.tobytes() in frames_of for c in copies)
+    assert all(parse(c.mission) is not None for c in copies)
+    # Scored against the picked object for the dashboard: mostly right on training objects.
+    new = m["relabelled"] - before["relabelled"]
+    assert new == len(copies)
+    assert m["relabel_accuracy"] >= 0.8 and m["dataset_size"] == 400 and m["val_accuracy"] >= 0.8
+
+
+class Tripwire:
+    """Stands in for ground truth: any use of it (other than passing it along) raises."""
+
+    def __getattr__(self, name):
+        raise RuntimeError(f"ground truth read: .{name}")
+
+    def __array__(self, *args, **kwargs):
+        raise RuntimeError("ground truth read: __array__")
+
+    def __getitem__(self, key):
+        raise RuntimeError("ground truth read: []")
+
+    def __iter__(self):
+        raise RuntimeError("ground truth read: iter")
+
+    def __len__(self):
+        raise RuntimeError("ground truth read: len")
+
+    def __eq__(self, other):
+        raise RuntimeError("ground truth read: ==")
+
+    __hash__ = object.__hash__
+
+
+def test_learned_never_reads_picked_or_goal_to_relabel(trained, monkeypatch):
+    wrong = wrong_picks(12, "heldout", seed=7)
+    reference = [c.mission for c in trained.relabel(wrong)]
+    # 1. Garbage ground truth gives the same relabels.
+    garbage = [replace(ep, picked=np.array([5, 1, 0, 4], np.int8), goal=np.array([0, 0, 0, 0], np.int8))
+               for ep in wrong]
+    assert [c.mission.tolist() for c in trained.relabel(garbage)] == [m.tolist() for m in reference]
+    # 2. Ground truth that cannot be read at all: only the after-the-fact scorer would touch it.
+    scored = []
+    monkeypatch.setattr(trained, "_score", lambda originals, attrs: scored.append(len(originals)))
+    blind = [replace(ep, picked=Tripwire(), goal=Tripwire()) for ep in wrong]
+    copies = trained.relabel(blind)
+    assert [c.mission.tolist() for c in copies] == [m.tolist() for m in reference]
+    assert scored == [len(copies)]
+
+
+def test_learned_checkpoint_round_trip(trained):
+    clone = LearnedRelabel(GEN, len(VOCAB), seed=42)
+    clone.load_state_dict(trained.state_dict())
+    wrong = wrong_picks(8, "train", seed=9)
+    assert [c.mission.tolist() for c in clone.relabel(wrong)] == [c.mission.tolist() for c in trained.relabel(wrong)]
+    for key in ("dataset_size", "val_accuracy", "train_steps", "gate_open"):
+        assert clone.metrics()[key] == trained.metrics()[key]
+    with pytest.raises(ValueError):
+        ExpertRelabel(seed=0).load_state_dict(trained.state_dict())
+
+
+def test_factory_builds_each_preset_strategy():
+    kinds = {"dqn": RelabelStrategy, "reward": RelabelStrategy, "her": ExpertRelabel,
+             "noisy-her": NoisyExpertRelabel, "higher": LearnedRelabel}
+    for preset, kind in kinds.items():
+        strategy = make_relabeler(make_config(preset, "small"), seed=0)
+        assert type(strategy) is kind, preset
+    noisy = make_relabeler(make_config("noisy-her", "small"), seed=0)
+    assert noisy.p == 0.2
+    learned = make_relabeler(make_config("higher", "small"), seed=0)
+    assert learned.cfg.n_min == 100
