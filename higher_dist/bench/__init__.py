@@ -14,8 +14,34 @@ def _world(argv: list[str]) -> int:
     return main(argv)
 
 
+def _learner(argv: list[str]) -> int:
+    from higher_dist.bench.learner_bench import main
+    return main(argv)
+
+
+def _wire(argv: list[str]) -> int:
+    from higher_dist.bench.wire_bench import main
+    return main(argv)
+
+
+def _generator(argv: list[str]) -> int:
+    from higher_dist.bench.generator_bench import main
+    return main(argv)
+
+
+def _cluster(argv: list[str]) -> int:
+    from higher_dist.bench.cluster_bench import main
+    return main(argv)
+
+
+def _all(argv: list[str]) -> int:
+    from higher_dist.bench.run_all import main
+    return main(argv)
+
+
 COMMANDS: dict[str, Callable[[list[str]], int]] = {
-    "world": _world,
+    "world": _world, "learner": _learner, "wire": _wire, "generator": _generator, "cluster": _cluster,
+    "all": _all,
 }
 
 

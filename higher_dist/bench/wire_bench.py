@@ -106,7 +106,14 @@ def push_pull_throughput(n: int, max_steps: int, seconds: float) -> dict[str, fl
             "mib_per_s": payload / elapsed / 2 ** 20, "seconds": elapsed, "rejects": counter.total}
 
 
-def main(argv: list[str] | None = None) -> dict[str, float]:
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of `higher-bench wire`: prints the table and the JSON line, returns the exit status."""
+    run(argv)
+    return 0
+
+
+def run(argv: list[str] | None = None) -> dict[str, float]:
+    """The benchmark itself; returns the summary that is printed as the last line."""
     parser = argparse.ArgumentParser(prog="higher-bench wire", description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=32, help="episodes per batch")
     parser.add_argument("--steps", type=int, default=40, help="max steps per episode (time-outs use all)")
@@ -159,4 +166,4 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -67,10 +67,11 @@ class InstructionGenerator(nn.Module):
         """(B, V, V, 4) integer views -> (B, hidden) context."""
         if views.dim() != 4 or views.shape[1:] != (self.view_size, self.view_size, 4):
             raise ValueError(f"views: expected (B, {self.view_size}, {self.view_size}, 4), got {tuple(views.shape)}")
-        views = views.long()
-        maps = self.encoder(views[:, None]).flatten(1)
+        stacked = views[:, None]  # a "stack" of one frame, as the encoder takes
+        maps = self.encoder(stacked).flatten(1)
         r, c = self.front
-        cell = F.embedding_bag(views[:, r, c] + self.encoder.offsets, self.encoder.embed.weight, mode="sum")
+        # The front cell through the same (shared) embedding, as a 1x1 view.
+        cell = self.encoder.embed_views(stacked[:, :, r:r + 1, c:c + 1]).flatten(1)
         return F.relu(self.context(torch.cat([maps, cell], dim=1)))
 
     def _step(self, tokens: torch.Tensor, ctx: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

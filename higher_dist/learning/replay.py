@@ -6,9 +6,10 @@ the final frame only (never sampled: priority 0). Frames are stored once, so fra
 states are gathered at sample time instead of being duplicated k or n times.
 
 Bytes per slot: frame V*V*4 = 196 (V=7) + action 1 + n-step return 4 + discount 4 + next offset 1
-+ episode record 4 + generation 8 = 218, plus the sum tree (16 bytes per power-of-two leaf, so 16-32
-per slot) and per-episode records (start 8, slots 4, origin 1, mission 2*L=20: 33 bytes per episode,
-at most one per 2 slots): about 250-270 bytes per slot in the worst case, ~0.27 GB for 1M slots.
++ stack history 1 + episode record 4 + generation 8 = 219, plus the sum tree (16 bytes per
+power-of-two leaf: 16-32 per slot) and the per-episode records (start 8, slots 4, origin 1, mission
+2*L = 20: 33 bytes, sized for the worst case of one episode per 2 slots, ~17 per slot): 250-270 bytes
+per slot, about 0.25 GB for 1M slots (np.zeros pages are only committed when first written).
 
 Eviction is FIFO by whole episodes: writing a new episode over the oldest one removes all of the
 old episode (its remaining slots get priority 0 and are marked free), so a frame stack or an n-step
@@ -57,8 +58,8 @@ class PrioritizedReplay:
                  view_size: int = 7, mission_len: int = 10, seed: int = 0):
         if cfg.capacity < 2:
             raise ValueError(f"replay capacity must be >= 2 slots, got {cfg.capacity}")
-        if frame_stack < 1:
-            raise ValueError(f"frame_stack must be >= 1, got {frame_stack}")
+        if not 1 <= frame_stack <= 256:  # stack reach is stored as uint8
+            raise ValueError(f"frame_stack must be in [1, 256], got {frame_stack}")
         if not 1 <= n_step <= 255:  # next-slot offsets are stored as uint8
             raise ValueError(f"n_step must be in [1, 255], got {n_step}")
         if not 0.0 <= gamma <= 1.0:
@@ -78,6 +79,7 @@ class PrioritizedReplay:
         self._return = np.zeros(c, dtype=np.float32)
         self._discount = np.zeros(c, dtype=np.float32)
         self._next_offset = np.zeros(c, dtype=np.uint8)  # m; 0 marks a final frame (no transition)
+        self._history = np.zeros(c, dtype=np.uint8)  # min(t, 255): earlier frames a stack may reach
         self._episode = np.full(c, -1, dtype=np.int32)  # episode record, -1 = free slot
         self._generation = np.full(c, -1, dtype=np.int64)  # serial of the write that filled the slot
 
@@ -99,6 +101,7 @@ class PrioritizedReplay:
         self._counts = np.zeros(len(ORIGINS), dtype=np.int64)
         self._transitions_added = 0
         self._stack_back = np.arange(self.frame_stack - 1, -1, -1, dtype=np.int64)  # k-1 .. 0
+        self._gamma_pow = self.gamma ** np.arange(self.n_step + 1, dtype=np.float64)
 
     # ----------------------------------------------------------------------------------- insert
 
@@ -123,10 +126,7 @@ class PrioritizedReplay:
         returns, discounts, offsets = self._n_step_targets(ep.rewards, ep.terminated)
         actions = np.zeros(n_slots, dtype=np.uint8)
         actions[:steps] = ep.actions
-        priorities = np.full(n_slots, max(self._tree.max_priority, 1.0))
-        priorities[-1] = 0.0  # the final frame is a next state only
-
-        self._evict_overlapping(n_slots)
+        span = self._evict_for(n_slots)
         start = self._cursor
         record = self._next_serial % self._n_records
         for slot, lo, hi in self._runs(start, n_slots):
@@ -136,8 +136,17 @@ class PrioritizedReplay:
             self._return[slot:end] = returns[lo:hi]
             self._discount[slot:end] = discounts[lo:hi]
             self._next_offset[slot:end] = offsets[lo:hi]
+            self._history[slot:end] = np.minimum(np.arange(lo, hi), 255)
             self._episode[slot:end] = record
             self._generation[slot:end] = np.arange(self._writes + lo, self._writes + hi)
+        if span > n_slots:  # leftovers of evicted episodes become free slots
+            for slot, lo, hi in self._runs((start + n_slots) % self.capacity, span - n_slots):
+                self._episode[slot:slot + hi - lo] = -1
+        # One tree write covers the new transitions (max priority), the final frame (0, a next state
+        # only) and the leftovers of evicted episodes (0, so no stack can mix episodes).
+        priorities = np.zeros(span)
+        priorities[:steps] = max(self._tree.max_priority, 1.0)
+        for slot, lo, hi in self._runs(start, span):
             self._tree.update_run(slot, priorities[lo:hi])
 
         origin = ORIGINS.index(ep.origin)
@@ -162,17 +171,14 @@ class PrioritizedReplay:
         steps, n = rewards.shape[0], self.n_step
         padded = np.zeros(steps + n, dtype=np.float64)  # zeros past the end cut sums short at m < n
         padded[:steps] = rewards
-        returns = np.zeros(steps + 1, dtype=np.float64)
-        for i in range(n):
-            returns[:steps] += self.gamma ** i * padded[i:i + steps]
-        m = np.minimum(n, steps - np.arange(steps))
-        discounts = np.zeros(steps + 1, dtype=np.float64)
-        discounts[:steps] = self.gamma ** m
+        # Sliding dot product with (1, gamma, ..., gamma^(n-1)); the (T+1)th entry sums only padding.
+        returns = np.correlate(padded, self._gamma_pow[:n], "valid")
+        m = np.minimum(n, steps - np.arange(steps + 1))  # 0 for the final slot
+        discounts = self._gamma_pow[m]
+        discounts[-1] = 0.0
         if terminated:
-            discounts[max(0, steps - n):steps] = 0.0  # exactly the t with t + m == T
-        offsets = np.zeros(steps + 1, dtype=np.uint8)
-        offsets[:steps] = m
-        return returns.astype(np.float32), discounts.astype(np.float32), offsets
+            discounts[max(0, steps - n):] = 0.0  # exactly the t with t + m == T
+        return returns.astype(np.float32), discounts.astype(np.float32), m.astype(np.uint8)
 
     def _runs(self, start: int, count: int):
         """(slot, lo, hi) pieces of `count` slots from `start`: one, or two when the ring wraps."""
@@ -181,21 +187,23 @@ class PrioritizedReplay:
         if first < count:
             yield 0, first, count
 
-    def _evict_overlapping(self, n_slots: int) -> None:
+    def _evict_for(self, n_slots: int) -> int:
+        """Drop the episodes the next n_slots slots reach; returns how many slots from the cursor
+        must be rewritten: n_slots, or more when an evicted episode extends past them."""
         # Live episodes lie in ring order from the oldest one's start up to the cursor, so the ones
-        # the next n_slots slots reach are the oldest whose start is < n_slots ahead of the cursor.
+        # reached are the oldest whose start is less than n_slots ahead of the cursor.
+        span = n_slots
         while self._first_live < self._next_serial:
             record = self._first_live % self._n_records
-            start = int(self._ep_start[record])
-            if (start - self._cursor) % self.capacity >= n_slots:
+            ahead = (int(self._ep_start[record]) - self._cursor) % self.capacity
+            if ahead >= n_slots:
                 break
             slots = int(self._ep_slots[record])
-            for slot, lo, hi in self._runs(start, slots):
-                self._tree.update_run(slot, np.zeros(hi - lo))
-                self._episode[slot:slot + hi - lo] = -1
+            span = max(span, ahead + slots)
             self._counts[self._ep_origin[record]] -= slots - 1
             self._size -= slots - 1
             self._first_live += 1
+        return span
 
     # ----------------------------------------------------------------------------------- sample
 
@@ -204,38 +212,36 @@ class PrioritizedReplay:
         if self._size == 0:
             raise ValueError("the replay holds no transitions to sample")
         rng = self._rng if rng is None else rng
-        total = self._tree.total()
+        tree, c, k = self._tree, self.capacity, self.frame_stack
         # Stratified: one value per equal slice of the total mass, which spreads a batch over the
         # buffer while each draw keeps probability p_i / total overall.
-        values = (np.arange(batch_size) + rng.random(batch_size)) * (total / batch_size)
-        slots = self._tree.sample(values)
-        probs = self._tree.tree[self._tree.n_leaves + slots] / total
-        weights = (self._size * probs) ** (-beta)
-        weights /= weights.max()
+        values = rng.random(batch_size)
+        values += np.arange(batch_size)
+        values *= tree.total() / batch_size
+        slots = tree.sample(values)
+        # w_i = (N P_i)^-beta / max_j (N P_j)^-beta = (P_min / P_i)^beta: N and the total cancel.
+        priority = tree.tree[tree.n_leaves + slots]
+        weights = np.power(priority.min() / priority, beta)
 
-        episode = self._episode[slots]
-        step = (slots - self._ep_start[episode]) % self.capacity  # position t inside the episode
-        offset = self._next_offset[slots]
-        next_slots = slots + offset
-        next_step = step + offset
-        if self.frame_stack == 1:
-            stacks = np.stack([slots, next_slots], axis=1)
+        # Frame stacks for the states and the next states in one gather: each reaches back k-1
+        # frames, but never past its episode's first frame (history = frames before it, capped).
+        ends = np.concatenate([slots, slots + self._next_offset[slots]])
+        np.remainder(ends, c, out=ends)
+        if k == 1:
+            stack_slots = ends[:, None]
         else:
-            back = self._stack_back
-            # Clamp how far back each stack reaches at the episode's first frame.
-            stacks = np.concatenate([slots[:, None] - np.minimum(back, step[:, None]),
-                                     next_slots[:, None] - np.minimum(back, next_step[:, None])], axis=1)
-        frames = self._frames[stacks % self.capacity]  # (B, 2k, V, V, 4), one gather for both
-        k = self.frame_stack
+            stack_slots = ends[:, None] - np.minimum(self._stack_back, self._history[ends][:, None])
+            np.remainder(stack_slots, c, out=stack_slots)
+        frames = self._frames[stack_slots]  # (2B, k, V, V, 4)
         return TransitionBatch(
             indices=slots,
             generations=self._generation[slots],
-            obs=np.ascontiguousarray(frames[:, :k]),
-            mission=self._ep_mission[episode].astype(np.int64),
+            obs=frames[:batch_size],
+            mission=self._ep_mission[self._episode[slots]].astype(np.int64),
             action=self._action[slots].astype(np.int64),
             reward=self._return[slots],
             discount=self._discount[slots],
-            next_obs=np.ascontiguousarray(frames[:, k:]),
+            next_obs=frames[batch_size:],
             weights=weights.astype(np.float32),
         )
 
@@ -287,7 +293,8 @@ class PrioritizedReplay:
 
     # ------------------------------------------------------------------------------- checkpoint
 
-    _ARRAYS = ("_frames", "_action", "_return", "_discount", "_next_offset", "_episode", "_generation",
+    _ARRAYS = ("_frames", "_action", "_return", "_discount", "_next_offset", "_history", "_episode",
+               "_generation",
                "_ep_start", "_ep_slots", "_ep_origin", "_ep_mission", "_counts")
     _INTS = ("_cursor", "_writes", "_first_live", "_next_serial", "_size", "_transitions_added")
 

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 import zmq
 
+from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, act, evaluate
 from higher_dist.learning.episode import SUCCESS
 from higher_dist.learning.exploration import actor_epsilons
@@ -44,7 +45,8 @@ def run_actor(learner: str, actor_id: int | None = None, keys: str | None = None
     torch.manual_seed(cfg.seed + idx)
     ctx = zmq.Context.instance()
     weights_sub = sockets.make_socket(ctx, zmq.SUB, connect=endpoints["weights"], conflate=True, curve=client.curve)
-    out = sockets.make_socket(ctx, zmq.PUSH, connect=endpoints["episodes"], hwm=4, curve=client.curve)
+    out = sockets.make_socket(ctx, zmq.PUSH, connect=endpoints["episodes"], hwm=EXPERIENCE_HWM,
+                               kernel_buffer_bytes=EXPERIENCE_BUFFER, curve=client.curve)
     collector = EpisodeCollector(cfg.world, cfg.envs_per_actor, cfg.network.frame_stack,
                                  seed=cfg.seed * 1000 + 17 * (idx + 1), actor_id=idx)
     policy = TorchQFunction(cfg.network)

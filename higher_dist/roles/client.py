@@ -55,7 +55,7 @@ class ControlClient:
                  "protocol": PROTOCOL_VERSION, "index": self.index}
         while time.time() < deadline:
             self.send("hello", hello)
-            msg = sockets.recv_message(self.sock, 1000, self.rejects)
+            msg = sockets.recv_message(self.sock, 1000, self.rejects, "control", self._version_error)
             if should_stop is not None and should_stop():
                 raise KeyboardInterrupt
             if msg is None:
@@ -68,6 +68,13 @@ class ControlClient:
                 self.index = msg.fields["index"]
                 return from_dict(msg.fields["config"]), dict(msg.fields["endpoints"])
         raise TimeoutError(f"no welcome from the learner within {timeout_s:.0f} s")
+
+    @staticmethod
+    def _version_error(err: codec.WireError, _identity) -> None:
+        # The learner answers in its own protocol version; unreadable here means a mismatch.
+        if err.reason == "version":
+            raise Refused(f"protocol version mismatch: the learner speaks {err.peer_version}, "
+                          f"this role speaks {PROTOCOL_VERSION}; run the same higher-dist version everywhere")
 
     def poll(self) -> bool:
         """Read control messages without blocking; True once the learner said stop."""

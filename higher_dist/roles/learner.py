@@ -18,7 +18,7 @@ import zmq
 
 from higher_dist import config as config_mod
 from higher_dist.config import Config
-from higher_dist.launch.topology import Endpoints, bind_address
+from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM, Endpoints, bind_address
 from higher_dist.learning.learner_core import LearnerCore
 from higher_dist.roles.registry import RoleRegistry
 from higher_dist.rundir import RunDir
@@ -59,7 +59,8 @@ class LearnerRole:
         self.auth = start_authenticator(ctx, keys) if keys else None
         self.control = sockets.make_socket(ctx, zmq.ROUTER, bind=b(endpoints.control), hwm=1000, curve=curve)
         # A small receive queue: when the learner stops reading, senders block instead of piling up.
-        self.experience = sockets.make_socket(ctx, zmq.PULL, bind=b(endpoints.experience), hwm=4, curve=curve)
+        self.experience = sockets.make_socket(ctx, zmq.PULL, bind=b(endpoints.experience), hwm=EXPERIENCE_HWM,
+                                                  kernel_buffer_bytes=EXPERIENCE_BUFFER, curve=curve)
         self.weights = sockets.make_socket(ctx, zmq.PUB, bind=b(endpoints.weights), hwm=2, curve=curve)
         self.telemetry = sockets.make_socket(ctx, zmq.PUB, bind=b(endpoints.telemetry), hwm=10)
 
@@ -133,11 +134,19 @@ class LearnerRole:
         else:
             self.rejects.add("unexpected_type")
 
+    def _refuse_version(self, err: codec.WireError, identity: bytes | None) -> None:
+        """A peer of another protocol version cannot be decoded, but it can be told why."""
+        if err.reason == "version" and identity is not None:
+            self._send(identity, "refuse", {
+                "reason": f"protocol version mismatch: this learner speaks {PROTOCOL_VERSION}, the peer "
+                          f"speaks {err.peer_version}; run the same higher-dist version everywhere",
+                "protocol": PROTOCOL_VERSION})
+
     def poll_control(self, limit: int = 100) -> None:
         for _ in range(limit):
             if not self.control.getsockopt(zmq.EVENTS) & zmq.POLLIN:
                 return
-            routed = sockets.recv_routed(self.control, 0, self.rejects, "control")
+            routed = sockets.recv_routed(self.control, 0, self.rejects, "control", self._refuse_version)
             if routed is not None:
                 self.handle_control(*routed)
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 import zmq
 
-from higher_dist.launch.topology import bind_address
+from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM, bind_address
 from higher_dist.learning.relabel import make_relabeler
 from higher_dist.roles.client import ControlClient, Refused
 from higher_dist.rundir import RunDir
@@ -56,9 +56,11 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
             log.info("resumed the relabeler's generator and dataset from %s", rd.checkpoint_path("relabeler"))
     ctx = zmq.Context.instance()
     server = CurveServer(keys) if keys else None
-    inbox = sockets.make_socket(ctx, zmq.PULL, bind=bind_address(endpoints["relabeler"], bind_host), hwm=4,
+    inbox = sockets.make_socket(ctx, zmq.PULL, bind=bind_address(endpoints["relabeler"], bind_host),
+                                hwm=EXPERIENCE_HWM, kernel_buffer_bytes=EXPERIENCE_BUFFER,
                                 curve=server)
-    outbox = sockets.make_socket(ctx, zmq.PUSH, connect=endpoints["experience"], hwm=4, curve=client.curve)
+    outbox = sockets.make_socket(ctx, zmq.PUSH, connect=endpoints["experience"], hwm=EXPERIENCE_HWM,
+                                 kernel_buffer_bytes=EXPERIENCE_BUFFER, curve=client.curve)
     client.send("register", {"role": "relabeler", "endpoint": endpoints["relabeler"]})
     pending, received, relabelled = None, 0, 0
     last_stats = last_ckpt = last_train = time.time()

@@ -19,6 +19,7 @@ of the received frames.
 """
 from __future__ import annotations
 
+import functools
 import math
 import struct
 import sys
@@ -140,7 +141,7 @@ def decode(frames: Sequence[Any]) -> Message:
     first = buffers[0]
     one_frame = len(buffers) == 1 and len(first) >= _PREFIX.size and bytes(first[:4]) == MAGIC
     if one_frame:
-        magic, header_len = _PREFIX.unpack(first[:_PREFIX.size])
+        _, header_len = _PREFIX.unpack(first[:_PREFIX.size])
         if header_len > S.MAX_HEADER_BYTES or _PREFIX.size + header_len > len(first):
             raise WireError("size", "one-frame header length %d does not fit" % header_len)
         header_bytes = first[_PREFIX.size:_PREFIX.size + header_len]
@@ -330,8 +331,16 @@ def _check_values(aspec: S.Array, name: str, arr: np.ndarray) -> None:
 
 def _check_bounds(arr: np.ndarray, lo: float | None, hi: float | None, name: str) -> None:
     # A bound the dtype cannot violate (uint8 >= 0) costs nothing.
-    info = np.iinfo(arr.dtype) if arr.dtype.kind in "iu" else None
-    if lo is not None and not (info is not None and lo <= info.min) and arr.min() < lo:
+    dtype_min, dtype_max = _dtype_limits(arr.dtype)
+    if lo is not None and lo > dtype_min and arr.min() < lo:
         raise WireError("range", "%s below %s" % (name, lo))
-    if hi is not None and not (info is not None and hi >= info.max) and arr.max() > hi:
+    if hi is not None and hi < dtype_max and arr.max() > hi:
         raise WireError("range", "%s above %s" % (name, hi))
+
+
+@functools.lru_cache(maxsize=None)
+def _dtype_limits(dtype: np.dtype) -> tuple[float, float]:
+    if dtype.kind in "iu":
+        info = np.iinfo(dtype)
+        return info.min, info.max
+    return -math.inf, math.inf

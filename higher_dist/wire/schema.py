@@ -170,7 +170,7 @@ _V = Dim(3, MAX_VIEW, "V")
 _L = Dim(1, MAX_MISSION_LEN, "L")
 
 _ROLE = Field("role", "name", max_len=32)
-_ID = Field("id", "int", 0, MAX_ID)
+_ID = Field("id", "int", -1, MAX_ID)  # -1: a role that has not been welcomed (given an index) yet
 
 _SPECS: tuple[MessageSpec, ...] = (
     MessageSpec("hello", fields=(

@@ -26,7 +26,7 @@ def make_socket(ctx: zmq.Context, kind: int, *, bind: str | Sequence[str] | None
                 connect: str | Sequence[str] | None = None, hwm: int = DEFAULT_HWM, linger_ms: int = 200,
                 conflate: bool = False, identity: bytes | str | None = None, curve: Any = None,
                 subscribe: bytes | None = b"", immediate: bool | None = None,
-                max_msg_bytes: int = MAX_FRAME_BYTES) -> zmq.Socket:
+                max_msg_bytes: int = MAX_FRAME_BYTES, kernel_buffer_bytes: int | None = None) -> zmq.Socket:
     """A socket with the project's options set, then bound and/or connected.
 
     curve: an object with `apply(socket)` (security.CurveServer / CurveClient), applied before bind/connect.
@@ -34,6 +34,7 @@ def make_socket(ctx: zmq.Context, kind: int, *, bind: str | Sequence[str] | None
     immediate: queue only to completed connections, so a PUSH blocks (backpressure) instead of piling
         messages onto a peer that is not there; default on for connecting PUSH sockets.
     subscribe: the SUB topic prefix (b"" = everything); ignored by other kinds.
+    kernel_buffer_bytes: SO_SNDBUF/SO_RCVBUF, for the experience path where backpressure must be prompt.
     """
     sock = ctx.socket(kind)
     try:
@@ -47,6 +48,11 @@ def make_socket(ctx: zmq.Context, kind: int, *, bind: str | Sequence[str] | None
         # is the application's heartbeat messages instead (roles.registry marks silent roles dead).
         # libzmq drops an over-size frame and the connection before it is ever buffered in Python.
         sock.setsockopt(zmq.MAXMSGSIZE, max_msg_bytes)
+        if kernel_buffer_bytes is not None:
+            # Bound what the kernel buffers too: on loopback TCP buffers hold megabytes, i.e. tens of
+            # thousands of frames of stale experience that high-water marks alone do not see.
+            sock.setsockopt(zmq.SNDBUF, kernel_buffer_bytes)
+            sock.setsockopt(zmq.RCVBUF, kernel_buffer_bytes)
         if conflate:
             sock.setsockopt(zmq.CONFLATE, 1)
         if immediate is None:

@@ -2,6 +2,8 @@ import io
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from higher_dist.config import ReplayConfig
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
@@ -127,6 +129,35 @@ def test_fifo_eviction_by_whole_episodes():
     assert replay.composition() == {"success": 5, "wrong_pick": 0, "timeout": 5, "relabelled": 5}
     assert {ids(s)[-1][0] for s in sample_all(replay).obs} == {3, 4, 5}
     assert replay.transitions_added == 25
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(st.integers(1, 9), st.integers(0, 3)), min_size=1, max_size=25))
+def test_eviction_matches_a_slot_level_model(episodes):
+    """Against a model that tracks the owner of every slot: an episode lives while it owns all its slots."""
+    capacity = 23
+    replay = make_replay(capacity=capacity, frame_stack=3)
+    owner = [-1] * capacity
+    spans, cursor = {}, 0
+    for ep_id, (steps, kind) in enumerate(episodes):
+        outcome, relabelled = (WRONG_PICK, True) if kind == 3 else (kind, False)
+        replay.add_episode(make_episode(ep_id, steps, outcome, relabelled=relabelled))
+        slots = [(cursor + i) % capacity for i in range(steps + 1)]
+        for slot in slots:
+            owner[slot] = ep_id
+        spans[ep_id] = (slots, steps, "relabelled" if relabelled else ("success", "wrong_pick", "timeout")[outcome])
+        cursor = (cursor + steps + 1) % capacity
+        live = {e for e, (sl, _, _) in spans.items() if all(owner[x] == e for x in sl)}
+        assert len(replay) == sum(spans[e][1] for e in live)
+        expected = {"success": 0, "wrong_pick": 0, "timeout": 0, "relabelled": 0}
+        for e in live:
+            expected[spans[e][2]] += spans[e][1]
+        assert replay.composition() == expected
+        batch = replay.sample(2 * len(replay) + 2, beta=0.4)  # equal priorities: covers every transition
+        seen = {ids(stack)[-1] for stack in batch.obs}
+        assert seen == {(e, t) for e in live for t in range(spans[e][1])}
+        for stack in np.concatenate([batch.obs, batch.next_obs]):
+            assert len({e for e, _ in ids(stack)}) == 1
 
 
 def test_episode_filling_the_whole_buffer_evicts_everything():

@@ -37,7 +37,8 @@ def sample_message(msg_type: str) -> tuple[dict, dict]:
     """Valid (fields, arrays) for each type; the round-trip test fails if a new type has none."""
     cfg = make_config("higher", "small")
     return {
-        "hello": ({"role": "actor", "host": "node-1.example", "pid": 4242, "protocol": PROTOCOL_VERSION}, {}),
+        "hello": ({"role": "actor", "host": "node-1.example", "pid": 4242, "protocol": PROTOCOL_VERSION,
+                   "index": 2}, {}),
         "welcome": ({"config": cfg.to_dict(), "endpoints": {"experience": "tcp://10.0.0.1:5556",
                                                            "weights": "tcp://10.0.0.1:5557"},
                      "protocol": PROTOCOL_VERSION, "index": 3}, {}),

@@ -1,0 +1,200 @@
+"""QNetwork and ViewEncoder: shapes, the embedding against a numpy reference, dueling, fusion modes,
+mission padding, and publishing weights as numpy arrays."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from higher_dist.config import NetworkConfig
+from higher_dist.learning.networks import (
+    VIEW_CHANNEL_VALUES, QNetwork, ViewEncoder, load_weights_numpy, lookup, weights_numpy,
+)
+
+torch.set_num_threads(1)
+
+SMALL = NetworkConfig(embed_dim=4, conv_channels=(8, 8), frame_stack=2, word_embed_dim=8, text_hidden=8, hidden=16)
+VOCAB = 40
+
+
+def random_views(rng: np.random.Generator, b: int, k: int, v: int = 7) -> np.ndarray:
+    """Valid views: attributes only where the kind is an object (key 3, ball 4)."""
+    views = np.zeros((b, k, v, v, 4), np.uint8)
+    kind = rng.integers(0, 5, (b, k, v, v))
+    views[..., 0] = kind
+    is_object = kind >= 3
+    for ch in (1, 2, 3):
+        views[..., ch] = np.where(is_object, rng.integers(1, VIEW_CHANNEL_VALUES[ch], (b, k, v, v)), 0)
+    return views
+
+
+def random_missions(rng: np.random.Generator, b: int, length: int = 10) -> np.ndarray:
+    missions = np.zeros((b, length), np.int64)
+    for i, n in enumerate(rng.integers(5, 9, b)):
+        missions[i, :n] = rng.integers(3, VOCAB, n)
+    return missions
+
+
+def as_tensors(views: np.ndarray, missions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    return torch.from_numpy(views), torch.from_numpy(missions)
+
+
+@pytest.mark.parametrize("fusion", ["film", "concat"])
+@pytest.mark.parametrize("dueling", [True, False])
+def test_output_shape_and_both_branches_get_gradients(fusion: str, dueling: bool) -> None:
+    torch.manual_seed(0)
+    cfg = NetworkConfig(**{**SMALL.__dict__, "fusion": fusion, "dueling": dueling})
+    net = QNetwork(cfg, vocab_size=VOCAB)
+    rng = np.random.default_rng(0)
+    q = net(*as_tensors(random_views(rng, 5, 2), random_missions(rng, 5)))
+    assert q.shape == (5, 4) and q.dtype == torch.float32 and torch.isfinite(q).all()
+    q.square().sum().backward()
+    # Both the view and the instruction branch are trained by the Q loss.
+    assert net.view.embed.weight.grad.abs().sum() > 0
+    assert net.text.gru.weight_hh_l0.grad.abs().sum() > 0
+    assert net.text.embed.weight.grad.abs().sum() > 0
+
+
+def test_mission_changes_q_values() -> None:
+    torch.manual_seed(1)
+    net = QNetwork(SMALL, vocab_size=VOCAB)
+    rng = np.random.default_rng(1)
+    views = random_views(rng, 4, 2)
+    q1 = net(*as_tensors(views, random_missions(rng, 4)))
+    q2 = net(*as_tensors(views, random_missions(rng, 4)))
+    assert not torch.allclose(q1, q2)
+
+
+def test_dueling_advantage_has_zero_mean() -> None:
+    """Q = V + A - mean(A): the mean over actions of Q is exactly the value stream."""
+    torch.manual_seed(2)
+    net = QNetwork(SMALL, vocab_size=VOCAB)
+    captured = {}
+    net.value.register_forward_hook(lambda mod, inp, out: captured.__setitem__("v", out))
+    net.advantage.register_forward_hook(lambda mod, inp, out: captured.__setitem__("a", out))
+    rng = np.random.default_rng(2)
+    q = net(*as_tensors(random_views(rng, 6, 2), random_missions(rng, 6)))
+    assert torch.allclose(q.mean(dim=1), captured["v"].squeeze(1), atol=1e-6)
+    assert torch.allclose(q - q.mean(dim=1, keepdim=True),
+                          captured["a"] - captured["a"].mean(dim=1, keepdim=True), atol=1e-6)
+
+
+def test_extra_padding_and_batch_company_do_not_change_output() -> None:
+    """Trailing PADs are ignored, and a sample's Q does not depend on the lengths of its batch mates
+    (the GRU state is taken at each mission's own last word)."""
+    torch.manual_seed(3)
+    net = QNetwork(SMALL, vocab_size=VOCAB).eval()
+    rng = np.random.default_rng(3)
+    views, missions = random_views(rng, 6, 2), random_missions(rng, 6, length=10)
+    q = net(*as_tensors(views, missions))
+    padded = np.concatenate([missions, np.zeros((6, 7), np.int64)], axis=1)
+    assert torch.allclose(q, net(*as_tensors(views, padded)), atol=1e-6)
+    for i in range(6):
+        alone = net(*as_tensors(views[i:i + 1], missions[i:i + 1]))
+        assert torch.allclose(q[i:i + 1], alone, atol=1e-5)
+
+
+def test_embedding_matches_numpy_reference() -> None:
+    """embed_views sums the 4 channel embeddings of each cell (rows offset per channel) and lays the
+    frames side by side along features: (B, k*E, V, V)."""
+    torch.manual_seed(4)
+    enc = ViewEncoder(embed_dim=3, conv_channels=(4,), in_frames=2)
+    rng = np.random.default_rng(4)
+    views = random_views(rng, 3, 2)
+    table = enc.embed.weight.detach().numpy()
+    offsets = np.cumsum((0,) + VIEW_CHANNEL_VALUES[:-1])
+    expected = np.zeros((3, 2 * 3, 7, 7), np.float32)
+    for b in range(3):
+        for f in range(2):
+            for y in range(7):
+                for x in range(7):
+                    cell = sum(table[offsets[c] + views[b, f, y, x, c]] for c in range(4))
+                    expected[b, f * 3:(f + 1) * 3, y, x] = cell
+    got = enc.embed_views(torch.from_numpy(views))
+    assert got.shape == (3, 6, 7, 7)
+    np.testing.assert_allclose(got.detach().numpy(), expected, rtol=1e-6, atol=1e-6)
+
+
+def test_lookup_gradient_matches_autograd_embedding() -> None:
+    torch.manual_seed(5)
+    table = torch.randn(30, 5, requires_grad=True)
+    index = torch.randint(0, 30, (7, 11))
+    upstream = torch.randn(7, 11, 5)
+    (lookup(index, table) * upstream).sum().backward()
+    ours = table.grad.clone()
+    table.grad = None
+    (F.embedding(index, table) * upstream).sum().backward()
+    assert torch.allclose(ours, table.grad, atol=1e-6)
+
+
+def test_encoder_output_sizes_and_deep_stacks() -> None:
+    enc = ViewEncoder(embed_dim=4, conv_channels=(8, 16), in_frames=3)
+    assert (enc.out_channels, enc.out_size, enc.out_dim) == (16, 3, 16 * 9)
+    # More layers than a 7x7 view can take unpadded: the last ones keep the 1x1 map.
+    deep = ViewEncoder(embed_dim=4, conv_channels=(8, 8, 8, 8), in_frames=1)
+    out = deep(torch.zeros(2, 1, 7, 7, 4, dtype=torch.uint8))
+    assert out.shape == (2, 8, 1, 1) and deep.out_dim == 8
+
+
+def test_invalid_views_are_refused() -> None:
+    enc = ViewEncoder(embed_dim=4, conv_channels=(8,), in_frames=1)
+    views = torch.zeros(2, 1, 7, 7, 4, dtype=torch.uint8)
+    views[1, 0, 3, 3, 2] = VIEW_CHANNEL_VALUES[2]  # one past the last shade value
+    with pytest.raises(ValueError, match="out of range"):
+        enc(views)
+    with pytest.raises(ValueError, match="out of range"):
+        enc(torch.full((1, 1, 7, 7, 4), -1, dtype=torch.int64))
+    with pytest.raises(ValueError, match="integer"):
+        enc(torch.zeros(1, 1, 7, 7, 4))
+    with pytest.raises(ValueError, match="expected"):
+        enc(torch.zeros(1, 2, 7, 7, 4, dtype=torch.uint8))  # two frames for a one-frame encoder
+
+
+def test_weights_numpy_round_trip() -> None:
+    torch.manual_seed(6)
+    a = QNetwork(SMALL, vocab_size=VOCAB)
+    torch.manual_seed(7)
+    b = QNetwork(SMALL, vocab_size=VOCAB)
+    arrays = weights_numpy(a)
+    assert arrays and all(x.dtype == np.float32 for x in arrays.values())
+    rng = np.random.default_rng(6)
+    inputs = as_tensors(random_views(rng, 3, 2), random_missions(rng, 3))
+    assert not torch.allclose(a(*inputs), b(*inputs))
+    load_weights_numpy(b, arrays)
+    assert torch.equal(a(*inputs), b(*inputs))
+    # The arrays are copies: scribbling on them does not touch the network.
+    before = a(*inputs)
+    for x in arrays.values():
+        x[...] = 0
+    assert torch.equal(a(*inputs), before)
+
+
+def test_load_weights_numpy_rejects_mismatch_without_partial_update() -> None:
+    torch.manual_seed(8)
+    net = QNetwork(SMALL, vocab_size=VOCAB)
+    good = weights_numpy(net)
+    reference = {k: v.copy() for k, v in good.items()}
+    name = "trunk.weight"
+
+    missing = {k: np.ones_like(v) for k, v in good.items() if k != name}
+    with pytest.raises(ValueError, match=name):
+        load_weights_numpy(net, missing)
+
+    extra = {**good, "bogus.weight": np.zeros(3, np.float32)}
+    with pytest.raises(ValueError, match="bogus.weight"):
+        load_weights_numpy(net, extra)
+
+    misshapen = {k: np.ones_like(v) for k, v in good.items()}
+    misshapen[name] = np.ones((3, 3), np.float32)
+    with pytest.raises(ValueError, match=name):
+        load_weights_numpy(net, misshapen)
+
+    # Validation happens before any copy: the failed loads left every weight as it was.
+    for k, v in weights_numpy(net).items():
+        np.testing.assert_array_equal(v, reference[k])
+
+    # A network of another size is refused too.
+    other = QNetwork(NetworkConfig(**{**SMALL.__dict__, "hidden": 32}), vocab_size=VOCAB)
+    with pytest.raises(ValueError, match="shape"):
+        load_weights_numpy(other, good)
