@@ -21,8 +21,8 @@ DEFAULT_HOST = "127.0.0.1"  # loopback only unless the user asks for more
 DEFAULT_BASE_PORT = 5555
 # The experience path (actor -> relabeler -> learner) holds little in flight, so the learner's rate
 # limiter reaches the actors within a few batches and the replay never trains on stale experience.
-EXPERIENCE_HWM = 2  # messages (episode batches) per socket queue
-EXPERIENCE_BUFFER = 256 << 10  # bytes of kernel socket buffer
+EXPERIENCE_HWM = 1  # messages (episode batches) per socket queue
+EXPERIENCE_BUFFER = 64 << 10  # bytes of kernel socket buffer
 _ENDPOINT = re.compile(r"^tcp://(?P<host>[^:/\s]+|\[[0-9a-fA-F:]+\]):(?P<port>\d{1,5})$")
 
 

@@ -25,14 +25,14 @@ from higher_dist.learning.generator_data import GeneratorDataset, parse_many, se
 from higher_dist.learning.networks import ViewEncoder
 from higher_dist.world.language import BEG, END, MISSION_LEN, PAD
 
-# The picked object sits in the cell right in front of the agent: the agent is at the bottom centre
-# (row V-1, column V//2) facing up, so the cell in front is (V-2, V//2).
-def front_cell(view_size: int) -> tuple[int, int]:
-    return view_size - 2, view_size // 2
-
-
 GRAD_CLIP = 5.0  # GRU decoders occasionally spike early in training; clipping keeps Adam steady
 EVAL_CHUNK = 1024  # validation is decoded in chunks to bound memory
+
+
+def front_cell(view_size: int) -> tuple[int, int]:
+    """(row, col) of the cell the agent faces, where a picked object lies: the agent is at the bottom
+    centre (row V-1, column V//2) facing up, so the cell in front is (V-2, V//2)."""
+    return view_size - 2, view_size // 2
 
 
 class InstructionGenerator(nn.Module):

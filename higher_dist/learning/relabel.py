@@ -184,7 +184,7 @@ class LearnedRelabel(RelabelStrategy):
         out.update({
             "unparseable": self.unparseable, "gated_off": self.gated_off, "gate_open": t.gate_open,
             "dataset_size": len(t.dataset), "val_accuracy": t.val_accuracy, "train_steps": t.steps,
-            "loss": t.last_loss, "evaluations": t.evaluations,
+            "loss": None if np.isnan(t.last_loss) else t.last_loss, "evaluations": t.evaluations,
         })
         return out
 

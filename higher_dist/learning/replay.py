@@ -294,12 +294,15 @@ class PrioritizedReplay:
     # ------------------------------------------------------------------------------- checkpoint
 
     _ARRAYS = ("_frames", "_action", "_return", "_discount", "_next_offset", "_history", "_episode",
-               "_generation",
-               "_ep_start", "_ep_slots", "_ep_origin", "_ep_mission", "_counts")
+               "_generation", "_ep_start", "_ep_slots", "_ep_origin", "_ep_mission", "_counts")
     _INTS = ("_cursor", "_writes", "_first_live", "_next_serial", "_size", "_transitions_added")
 
     def state_dict(self) -> dict:
-        """A flat dict of numpy arrays and Python numbers (np.savez-able without pickle)."""
+        """A flat dict of numpy arrays and Python numbers (np.savez-able without pickle).
+
+        Arrays are copies, so the replay may keep filling while a checkpoint is written; that costs
+        about the replay's own size in memory for the duration.
+        """
         state: dict = {"capacity": self.capacity, "n_step": self.n_step, "gamma": self.gamma,
                        "view_size": self.view_size, "mission_len": self.mission_len}
         for name in self._ARRAYS:

@@ -14,6 +14,7 @@ from higher_dist.learning.relabel import (ExpertRelabel, LearnedRelabel, NoisyEx
                                           make_relabeler)
 from higher_dist.world.language import VOCAB, expert_tokens, parse
 from higher_dist.world.objects import ObjectSpace
+from higher_dist.rundir import RunDir
 
 torch.set_num_threads(1)
 
@@ -185,9 +186,12 @@ def test_learned_never_reads_picked_or_goal_to_relabel(trained, monkeypatch):
     assert scored == [len(copies)]
 
 
-def test_learned_checkpoint_round_trip(trained):
+def test_learned_checkpoint_round_trip(trained, tmp_path):
+    # Through the run directory's checkpoint format (torch.load with weights_only=True).
+    run_dir = RunDir(tmp_path)
+    run_dir.save_checkpoint("relabeler", trained.state_dict())
     clone = LearnedRelabel(GEN, len(VOCAB), seed=42)
-    clone.load_state_dict(trained.state_dict())
+    clone.load_state_dict(run_dir.load_checkpoint("relabeler"))
     wrong = wrong_picks(8, "train", seed=9)
     assert [c.mission.tolist() for c in clone.relabel(wrong)] == [c.mission.tolist() for c in trained.relabel(wrong)]
     for key in ("dataset_size", "val_accuracy", "train_steps", "gate_open"):

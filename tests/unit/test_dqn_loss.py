@@ -1,0 +1,321 @@
+"""dqn_loss against a numpy reference on hand-made batches, and DQNLearner's update, target schedule,
+gradient clipping, checkpoints and published weights."""
+from __future__ import annotations
+
+import copy
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from torch import nn
+
+from higher_dist.config import DQNConfig, NetworkConfig
+from higher_dist.learning.dqn import DQNLearner, dqn_loss
+from higher_dist.learning.networks import QNetwork, load_weights_numpy
+
+torch.set_num_threads(1)
+
+GAMMA = 0.99
+SMALL = NetworkConfig(embed_dim=4, conv_channels=(8, 8), frame_stack=2, word_embed_dim=8, text_hidden=8, hidden=16)
+
+
+class TableQ(nn.Module):
+    """A fake Q-function: the Q-values of sample b are row `obs[b, 0, 0, 0, 0]` of a learnable table,
+    so a test fixes every Q-value and reads the gradient per (row, action)."""
+
+    def __init__(self, table: np.ndarray):
+        super().__init__()
+        self.table = nn.Parameter(torch.tensor(table, dtype=torch.float32))
+
+    def forward(self, obs: torch.Tensor, mission: torch.Tensor) -> torch.Tensor:
+        return self.table[obs[:, 0, 0, 0, 0].long()]
+
+
+def ids_as_obs(ids: np.ndarray) -> torch.Tensor:
+    obs = torch.zeros(len(ids), 1, 7, 7, 4, dtype=torch.uint8)
+    obs[:, 0, 0, 0, 0] = torch.from_numpy(ids.astype(np.uint8))
+    return obs
+
+
+def reference(q_on, q_tg, action, reward, discount, weights, delta, double):
+    """numpy: rows 0..B-1 of the tables are obs, rows B..2B-1 next_obs."""
+    b = len(action)
+    rows = np.arange(b)
+    q = q_on[rows, action]
+    chooser = q_on[b:] if double else q_tg[b:]
+    y = reward + discount * q_tg[b:][rows, chooser.argmax(axis=1)]
+    td = y - q
+    huber = np.where(np.abs(td) <= delta, 0.5 * td ** 2, delta * (np.abs(td) - 0.5 * delta))
+    grad = np.zeros_like(q_on)
+    grad[rows, action] = weights * np.clip(q - y, -delta, delta) / b
+    return (weights * huber).mean(), np.abs(td), y, grad
+
+
+def run_loss(q_on, q_tg, action, reward, discount, weights, delta=1.0, double=True):
+    b = len(action)
+    online, target = TableQ(q_on), TableQ(q_tg)
+    loss, prio, metrics = dqn_loss(
+        online, target, obs=ids_as_obs(np.arange(b)), mission=torch.zeros(b, 10, dtype=torch.long),
+        action=torch.tensor(action), reward=torch.tensor(reward, dtype=torch.float32),
+        discount=torch.tensor(discount, dtype=torch.float32), next_obs=ids_as_obs(np.arange(b) + b),
+        weights=torch.tensor(weights, dtype=torch.float32), huber_delta=delta, double=double)
+    loss.backward()
+    return loss, prio, metrics, online, target
+
+
+# A hand-made batch of 6 n-step (n=3) transitions, reward/discount as the replay forms them.
+Q_ONLINE = np.array([
+    [0.1, 0.5, 0.2, 0.0], [0.3, 0.3, 0.9, 0.1], [0.0, 0.2, 0.4, 0.6],
+    [0.2, 0.1, 0.0, 0.3], [0.5, 0.5, 0.5, 0.5], [3.0, 0.0, 0.0, 0.0],
+    # next_obs rows: online argmax 1, 0, 3, 2, 0, 1
+    [0.0, 0.9, 0.1, 0.2], [0.8, 0.1, 0.2, 0.7], [0.1, 0.2, 0.3, 0.9],
+    [0.1, 0.2, 9.0, 0.0], [0.4, 0.3, 0.2, 0.1], [0.0, 0.2, 0.1, 0.0],
+])
+Q_TARGET = np.array([
+    [0.0] * 4, [0.0] * 4, [0.0] * 4, [0.0] * 4, [0.0] * 4, [0.0] * 4,
+    # next_obs rows: target argmax 3, 0, 1, 2, 0, 1 -> differs from online in rows 0 and 2
+    [0.2, 0.4, 0.0, 0.8], [0.6, 0.5, 0.1, 0.0], [0.3, 0.7, 0.2, 0.5],
+    [0.0, 0.0, 50.0, 0.0], [0.2, 0.1, 0.0, 0.0], [0.0, 0.3, 0.0, 0.0],
+])
+ACTION = np.array([1, 2, 3, 3, 0, 0])
+REWARD = np.array([0.0, GAMMA * 1.0, 0.0, 0.0, 5.0, 0.0])  # row 1: success on the window's 2nd step
+DISCOUNT = np.array([
+    GAMMA ** 3,  # 0: full 3-step window, bootstraps from step 3
+    0.0,         # 1: the pick ended the episode inside the window: terminal
+    GAMMA ** 2,  # 2: time-out after 2 steps: truncated, still bootstraps (gamma^m with m=2)
+    0.0,         # 3: wrong pick: terminal, the huge next Q must not leak in
+    GAMMA ** 3,  # 4: big positive TD error: Huber's linear part
+    GAMMA ** 3,  # 5: big negative TD error
+])
+WEIGHTS = np.array([1.0, 0.5, 0.25, 1.0, 0.8, 0.3])
+
+
+@pytest.mark.parametrize("double", [True, False])
+@pytest.mark.parametrize("delta", [1.0, 0.5])
+def test_loss_priorities_metrics_and_gradient_match_numpy(double: bool, delta: float) -> None:
+    loss, prio, metrics, online, target = run_loss(Q_ONLINE, Q_TARGET, ACTION, REWARD, DISCOUNT, WEIGHTS,
+                                                   delta, double)
+    ref_loss, ref_prio, ref_y, ref_grad = reference(Q_ONLINE, Q_TARGET, ACTION, REWARD, DISCOUNT, WEIGHTS,
+                                                    delta, double)
+    assert loss.ndim == 0
+    assert loss.item() == pytest.approx(ref_loss, rel=1e-5)
+    np.testing.assert_allclose(prio.numpy(), ref_prio, rtol=1e-5, atol=1e-6)
+    assert not prio.requires_grad and prio.shape == (6,)
+    # d loss / d Q_online = Huber'(q - y) * w / B at the taken action, zero elsewhere, and nothing
+    # flows through the bootstrap (next_obs rows) or into the target network.
+    np.testing.assert_allclose(online.table.grad.numpy(), ref_grad, rtol=1e-5, atol=1e-7)
+    assert target.table.grad is None
+    q_taken = Q_ONLINE[np.arange(6), ACTION]
+    assert metrics["loss"] == pytest.approx(ref_loss, rel=1e-5)
+    assert metrics["q_mean"] == pytest.approx(q_taken.mean(), rel=1e-5)
+    assert metrics["td_abs_mean"] == pytest.approx(ref_prio.mean(), rel=1e-5)
+    assert metrics["target_mean"] == pytest.approx(ref_y.mean(), rel=1e-5)
+    assert all(isinstance(v, float) for v in metrics.values())
+
+
+def test_hand_computed_targets() -> None:
+    """The n-step target of each row, written out by hand."""
+    _, prio, _, _, _ = run_loss(Q_ONLINE, Q_TARGET, ACTION, REWARD, DISCOUNT, WEIGHTS, double=True)
+    q = Q_ONLINE[np.arange(6), ACTION]
+    expected_y = np.array([
+        GAMMA ** 3 * 0.4,  # a* = 1 by the online net, valued 0.4 by the target (target's own max: 0.8)
+        GAMMA,             # terminal: reward only
+        GAMMA ** 2 * 0.5,  # truncated: bootstraps with gamma^2 from a* = 3
+        0.0,               # terminal: next Q of 50 ignored
+        5.0 + GAMMA ** 3 * 0.2,
+        GAMMA ** 3 * 0.3,
+    ])
+    np.testing.assert_allclose(prio.numpy(), np.abs(expected_y - q), rtol=1e-5)
+
+
+def test_double_and_vanilla_targets_differ_only_where_the_argmax_does() -> None:
+    _, prio_double, _, _, _ = run_loss(Q_ONLINE, Q_TARGET, ACTION, REWARD, DISCOUNT, WEIGHTS, double=True)
+    _, prio_vanilla, _, _, _ = run_loss(Q_ONLINE, Q_TARGET, ACTION, REWARD, DISCOUNT, WEIGHTS, double=False)
+    differs = ~np.isclose(prio_double.numpy(), prio_vanilla.numpy())
+    np.testing.assert_array_equal(differs, [True, False, True, False, False, False])
+    # Vanilla bootstraps from the target's own max: 0.8 in row 0, 0.7 in row 2 (double: 0.4, 0.5).
+    q = Q_ONLINE[np.arange(6), ACTION]
+    np.testing.assert_allclose(prio_vanilla.numpy()[[0, 2]],
+                               np.abs(np.array([GAMMA ** 3 * 0.8, GAMMA ** 2 * 0.7]) - q[[0, 2]]), rtol=1e-5)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), double=st.booleans(), delta=st.sampled_from([0.3, 1.0, 2.0]))
+def test_random_batches_match_numpy(seed: int, double: bool, delta: float) -> None:
+    rng = np.random.default_rng(seed)
+    b = int(rng.integers(1, 20))
+    q_on, q_tg = rng.normal(0, 2, (2 * b, 4)), rng.normal(0, 2, (2 * b, 4))
+    action = rng.integers(0, 4, b)
+    reward = rng.normal(0, 1, b)
+    discount = np.where(rng.random(b) < 0.3, 0.0, GAMMA ** rng.integers(1, 4, b))
+    weights = rng.uniform(0.1, 1.0, b)
+    loss, prio, _, online, _ = run_loss(q_on, q_tg, action, reward, discount, weights, delta, double)
+    ref_loss, ref_prio, _, ref_grad = reference(q_on.astype(np.float32), q_tg.astype(np.float32), action,
+                                                reward, discount, weights, delta, double)
+    assert loss.item() == pytest.approx(ref_loss, rel=1e-4, abs=1e-6)
+    np.testing.assert_allclose(prio.numpy(), ref_prio, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(online.table.grad.numpy(), ref_grad, rtol=1e-4, atol=1e-6)
+
+
+# -- with real networks -------------------------------------------------------------------------
+
+
+def random_batch(rng: np.random.Generator, b: int, k: int = 2) -> SimpleNamespace:
+    """A TransitionBatch look-alike with valid views and missions."""
+    def views() -> np.ndarray:
+        v = np.zeros((b, k, 7, 7, 4), np.uint8)
+        kind = rng.integers(0, 5, (b, k, 7, 7))
+        v[..., 0] = kind
+        for ch, n in ((1, 7), (2, 6), (3, 6)):
+            v[..., ch] = np.where(kind >= 3, rng.integers(1, n, (b, k, 7, 7)), 0)
+        return v
+
+    mission = np.zeros((b, 10), np.int64)
+    for i, n in enumerate(rng.integers(5, 9, b)):
+        mission[i, :n] = rng.integers(3, 40, n)
+    return SimpleNamespace(
+        indices=np.arange(b), generations=np.zeros(b, np.int64), obs=views(), mission=mission,
+        action=rng.integers(0, 4, b), reward=(rng.random(b) < 0.3).astype(np.float32),
+        discount=np.where(rng.random(b) < 0.3, 0.0, GAMMA ** 3).astype(np.float32), next_obs=views(),
+        weights=rng.uniform(0.2, 1.0, b).astype(np.float32))
+
+
+def batch_tensors(batch: SimpleNamespace) -> dict[str, torch.Tensor]:
+    return {name: torch.from_numpy(getattr(batch, name)) for name in
+            ("obs", "mission", "action", "reward", "discount", "next_obs", "weights")}
+
+
+class HideMissionEncoder(nn.Module):
+    """Wraps a QNetwork behind a plain forward, so dqn_loss takes its generic path."""
+
+    def __init__(self, net: QNetwork):
+        super().__init__()
+        self.net = net
+
+    def forward(self, obs: torch.Tensor, mission: torch.Tensor) -> torch.Tensor:
+        return self.net(obs, mission)
+
+
+def test_shared_mission_encoding_equals_generic_path() -> None:
+    torch.manual_seed(0)
+    online, target = QNetwork(SMALL), QNetwork(SMALL)
+    tensors = batch_tensors(random_batch(np.random.default_rng(0), 9))
+    loss_fast, prio_fast, _ = dqn_loss(online, target, **tensors)
+    loss_fast.backward()
+    grads_fast = [p.grad.clone() for p in online.parameters()]
+    online.zero_grad()
+    loss_plain, prio_plain, _ = dqn_loss(HideMissionEncoder(online), target, **tensors)
+    loss_plain.backward()
+    assert torch.allclose(loss_fast, loss_plain, atol=1e-6)
+    assert torch.allclose(prio_fast, prio_plain, atol=1e-6)
+    for g_fast, p in zip(grads_fast, online.parameters()):
+        assert torch.allclose(g_fast, p.grad, atol=1e-6)
+
+
+def make_learner(**dqn_overrides) -> DQNLearner:
+    return DQNLearner(SMALL, DQNConfig(**dqn_overrides), seed=0)
+
+
+def params_of(net: nn.Module) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in net.parameters()]
+
+
+def same(a: list[torch.Tensor], b: list[torch.Tensor]) -> bool:
+    return all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+def test_update_returns_priorities_of_the_pre_update_networks() -> None:
+    learner = make_learner()
+    batch = random_batch(np.random.default_rng(1), 16)
+    _, expected, _ = dqn_loss(copy.deepcopy(learner.online), copy.deepcopy(learner.target),
+                              **batch_tensors(batch))
+    before = params_of(learner.online)
+    priorities, metrics = learner.update(batch)
+    assert isinstance(priorities, np.ndarray) and priorities.shape == (16,) and priorities.dtype == np.float32
+    np.testing.assert_allclose(priorities, expected.numpy(), rtol=1e-5, atol=1e-6)
+    assert {"loss", "q_mean", "td_abs_mean", "target_mean", "grad_norm"} <= set(metrics)
+    assert learner.updates == 1 and not same(before, params_of(learner.online))
+
+
+def test_period_target_update_copies_exactly_at_the_period() -> None:
+    learner = make_learner(target_update="period", target_period=3)
+    rng = np.random.default_rng(2)
+    initial = params_of(learner.target)
+    assert same(initial, params_of(learner.online))
+    for _ in range(2):
+        learner.update(random_batch(rng, 8))
+        assert same(initial, params_of(learner.target))
+        assert not same(initial, params_of(learner.online))
+    learner.update(random_batch(rng, 8))  # update 3: copy
+    at_copy = params_of(learner.online)
+    assert same(at_copy, params_of(learner.target))
+    learner.update(random_batch(rng, 8))  # update 4: the target holds the copy of update 3
+    assert same(at_copy, params_of(learner.target))
+    assert not same(at_copy, params_of(learner.online))
+
+
+def test_polyak_target_moves_by_tau() -> None:
+    tau = 0.1
+    learner = make_learner(target_update="polyak", polyak_tau=tau)
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        target_before = params_of(learner.target)
+        learner.update(random_batch(rng, 8))
+        online_after = params_of(learner.online)
+        for t_before, o_after, t_after in zip(target_before, online_after, params_of(learner.target)):
+            assert torch.allclose(t_after, t_before + tau * (o_after - t_before), atol=1e-7)
+
+
+def test_gradients_are_clipped_to_the_configured_norm() -> None:
+    learner = make_learner(grad_clip=1e-3)
+    _, metrics = learner.update(random_batch(np.random.default_rng(4), 16))
+    clipped = torch.sqrt(sum(p.grad.square().sum() for p in learner.online.parameters()))
+    assert metrics["grad_norm"] > 1e-3
+    assert clipped.item() == pytest.approx(1e-3, rel=1e-3)
+
+
+def test_learner_reduces_loss_on_a_fixed_batch() -> None:
+    # A target that never moves turns the updates into a regression the learner must fit.
+    learner = make_learner(lr=2e-3, target_period=10 ** 9)
+    batch = random_batch(np.random.default_rng(5), 32)
+    losses = [learner.update(batch)[1]["loss"] for _ in range(50)]
+    assert np.mean(losses[-5:]) < 0.3 * losses[0]
+
+
+def test_state_dict_resumes_exactly() -> None:
+    rng = np.random.default_rng(6)
+    batches = [random_batch(rng, 8) for _ in range(4)]
+    a = make_learner(target_period=2)
+    for batch in batches[:3]:
+        a.update(batch)
+    state = copy.deepcopy(a.state_dict())
+    b = DQNLearner(SMALL, DQNConfig(target_period=2), seed=123)
+    b.load_state_dict(state)
+    assert b.updates == 3
+    prio_a, _ = a.update(batches[3])
+    prio_b, _ = b.update(batches[3])  # update 4 also copies the target: both must do it
+    np.testing.assert_array_equal(prio_a, prio_b)
+    assert same(params_of(a.online), params_of(b.online))
+    assert same(params_of(a.target), params_of(b.target))
+
+
+def test_published_weights_reproduce_the_learners_q_values() -> None:
+    learner = make_learner()
+    rng = np.random.default_rng(7)
+    learner.update(random_batch(rng, 8))
+    batch = random_batch(rng, 5)
+    actor_net = QNetwork(SMALL)
+    load_weights_numpy(actor_net, learner.weights_numpy())
+    with torch.no_grad():
+        q_actor = actor_net(torch.from_numpy(batch.obs), torch.from_numpy(batch.mission)).numpy()
+    q_learner = learner.greedy_q(batch.obs, batch.mission)
+    assert q_learner.shape == (5, 4)
+    np.testing.assert_array_equal(q_actor, q_learner)
+    # Loading into the learner sets both networks.
+    other = DQNLearner(SMALL, DQNConfig(), seed=99)
+    other.load_weights_numpy(learner.weights_numpy())
+    assert same(params_of(other.online), params_of(learner.online))
+    assert same(params_of(other.target), params_of(learner.online))
