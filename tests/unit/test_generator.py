@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from higher_dist.config import GeneratorConfig, WorldConfig
 from higher_dist.bench.generator_bench import make_pairs
+from higher_dist.config import GeneratorConfig, WorldConfig
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
 from higher_dist.learning.generator import GeneratorTrainer, InstructionGenerator, decoder_targets
 from higher_dist.learning.generator_data import GeneratorDataset, semantic_accuracy, validation_flags

@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from higher_dist.config import GeneratorConfig, WorldConfig, make_config
 from higher_dist.bench.generator_bench import make_pairs
+from higher_dist.config import GeneratorConfig, WorldConfig, make_config
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
 from higher_dist.learning.relabel import (ExpertRelabel, LearnedRelabel, NoisyExpertRelabel, RelabelStrategy,
                                           make_relabeler)
+from higher_dist.rundir import RunDir
 from higher_dist.world.language import VOCAB, expert_tokens, parse
 from higher_dist.world.objects import ObjectSpace
-from higher_dist.rundir import RunDir
 
 torch.set_num_threads(1)
 
