@@ -139,6 +139,8 @@ def relabeler_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-relabeler", description="The relabeler: instruction generator service.")
     _role_flags(p)
     p.add_argument("--bind-host", default=None, help="interface to bind its episodes socket")
+    p.add_argument("--advertise", default=None, metavar="tcp://HOST:PORT",
+                   help="its episodes endpoint as actors should reach it (default: the learner's host, base+4)")
     p.add_argument("--state-dir", default=None, help="where its checkpoint goes (default: the run dir)")
     p.add_argument("--resume", action="store_true")
     args = p.parse_args(argv)
@@ -146,8 +148,12 @@ def relabeler_main(argv: list[str] | None = None) -> int:
     def go() -> int:
         from higher_dist.roles.relabeler import run_relabeler
 
-        return run_relabeler(args.learner, state_dir=args.state_dir, resume=args.resume,
-                             bind_host=args.bind_host, keys=args.keys, threads=args.threads)
+        if args.advertise:
+            from higher_dist.launch.topology import parse_endpoint
+
+            parse_endpoint(args.advertise)
+        return run_relabeler(args.learner, state_dir=args.state_dir, resume=args.resume, bind_host=args.bind_host,
+                             keys=args.keys, threads=args.threads, advertise=args.advertise)
 
     return _run("higher-relabeler", go)
 

@@ -90,6 +90,7 @@ class ControlClient:
         if state == "running" and now - self._last_heartbeat < every_s:
             return
         self._last_heartbeat = now
+        counters = dict(counters, pid=os.getpid())
         self.send("heartbeat", {"role": self.role, "id": self.index, "state": state,
                                 "counters": {k: float(v) for k, v in counters.items()
                                              if v is not None and math.isfinite(float(v))}})

@@ -115,10 +115,14 @@ class LearnerRole:
                 self._welcome(identity, index)
             return
         info = self.registry.seen(identity)
+        if info is None and msg.type in ("heartbeat", "stats", "register"):
+            # A role that joined before this learner restarted: known again by what it reports.
+            index = f.get("id", 0)
+            info = self.registry.hello(f["role"], max(index, 0), identity, "", 0)
         if info is None:
             self.rejects.add("unknown_peer")
             return
-        if msg.type == "register":
+        if msg.type == "register":  # repeated by the relabeler, so a restarted learner learns it again
             self.relabeler_endpoint = f["endpoint"]
             for ident, index in self.pending_hellos:
                 self._welcome(ident, index)
@@ -126,6 +130,7 @@ class LearnerRole:
         elif msg.type == "heartbeat":
             info.stopped = f["state"] == "stopping"
             info.stats.update(f["counters"])
+            info.pid = int(f["counters"].get("pid", info.pid))
         elif msg.type == "stats":
             info.stats.update(f["values"])
             for key in ("success_rate_eval_train", "success_rate_eval_heldout"):

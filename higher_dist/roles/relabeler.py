@@ -32,7 +32,7 @@ IDLE_TRAIN_PER_S = 20.0  # cap on generator steps/s when there is nothing else t
 
 
 def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = False, bind_host: str | None = None,
-                  keys: str | None = None, threads: int | None = None) -> int:
+                  keys: str | None = None, threads: int | None = None, advertise: str | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     stop = []
     for s in (signal.SIGINT, signal.SIGTERM):
@@ -55,13 +55,14 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
             strategy.load_state_dict(state)
             log.info("resumed the relabeler's generator and dataset from %s", rd.checkpoint_path("relabeler"))
     ctx = zmq.Context.instance()
+    episodes_endpoint = advertise or endpoints["relabeler"]
     server = CurveServer(keys) if keys else None
-    inbox = sockets.make_socket(ctx, zmq.PULL, bind=bind_address(endpoints["relabeler"], bind_host),
+    inbox = sockets.make_socket(ctx, zmq.PULL, bind=bind_address(episodes_endpoint, bind_host),
                                 hwm=EXPERIENCE_HWM, kernel_buffer_bytes=EXPERIENCE_BUFFER,
                                 curve=server)
     outbox = sockets.make_socket(ctx, zmq.PUSH, connect=endpoints["experience"], hwm=EXPERIENCE_HWM,
                                  kernel_buffer_bytes=EXPERIENCE_BUFFER, curve=client.curve)
-    client.send("register", {"role": "relabeler", "endpoint": endpoints["relabeler"]})
+    client.send("register", {"role": "relabeler", "endpoint": episodes_endpoint})
     pending, received, relabelled = None, 0, 0
     last_stats = last_ckpt = last_train = time.time()
     relabels_window = (time.time(), 0)
@@ -104,6 +105,7 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
                 relabels_per_s = (relabelled - n_w) / max(now - t_w, 1e-9)
                 relabels_window = (now, relabelled)
                 m = strategy.metrics()
+                client.send("register", {"role": "relabeler", "endpoint": episodes_endpoint})
                 client.stats({"episodes": received, "relabelled": relabelled,
                               "relabels_per_s": round(relabels_per_s, 2), **_flat(m)})
                 last_stats = now
