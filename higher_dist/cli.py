@@ -82,7 +82,7 @@ def cluster_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-cluster", description="Run learner, relabeler, actors and dashboard here.")
     add_config_flags(p)
     _network_flags(p)
-    p.add_argument("--run-dir", default=None, help="where config, metrics and checkpoints go (default runs/PRESET-WORLD-sSEED)")
+    p.add_argument("--run-dir", default=None, help="where config, metrics and checkpoints go (default runs/PRESET-WORLD-sSEED-TIME)")
     p.add_argument("--resume", action="store_true", help="continue from the run directory's checkpoints")
     p.add_argument("--no-dashboard", action="store_true", help="no live dashboard (prints a line per interval)")
     p.add_argument("--max-restarts", type=int, default=5, help="restarts of one role before giving up")
@@ -92,7 +92,13 @@ def cluster_main(argv: list[str] | None = None) -> int:
         from higher_dist.launch.local_cluster import run_local_cluster
 
         cfg = config_from_args(args)
-        run_dir = args.run_dir or f"runs/{cfg.preset}-{cfg.world.name}-s{cfg.seed}"
+        import time
+        from pathlib import Path
+
+        run_dir = args.run_dir or time.strftime(f"runs/{cfg.preset}-{cfg.world.name}-s{cfg.seed}-%Y%m%d-%H%M%S")
+        if not args.resume and (Path(run_dir) / "learner.ckpt").exists():
+            raise ConfigError(f"--run-dir {run_dir} already holds a run: add --resume to continue it, "
+                              "or choose another --run-dir")
         return run_local_cluster(cfg, run_dir, resume=args.resume, dashboard=not args.no_dashboard,
                                  host=args.host, port_base=args.port_base, max_restarts=args.max_restarts,
                                  keys=args.keys)

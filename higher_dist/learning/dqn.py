@@ -16,8 +16,11 @@ from torch import nn
 from higher_dist.config import DQNConfig, NetworkConfig
 from higher_dist.learning.networks import QNetwork, load_weights_numpy, weights_numpy
 
+# load_weights_numpy / weights_numpy are re-exported: actors import them from here.
+__all__ = ["TransitionBatchLike", "dqn_loss", "DQNLearner", "load_weights_numpy", "weights_numpy"]
 
-class TransitionBatch(Protocol):
+
+class TransitionBatchLike(Protocol):
     """What `DQNLearner.update` reads (the replay's batch satisfies it by duck typing).
 
     reward is the n-step return already summed; discount is gamma^m for the m steps actually taken,
@@ -98,8 +101,10 @@ class DQNLearner:
         self.net_cfg = net_cfg
         self.cfg = dqn_cfg
         self.device = torch.device(device)
-        torch.manual_seed(seed)
-        self.online = QNetwork(net_cfg, vocab_size=vocab_size).to(self.device)
+        # Seeded initialisation without resetting the caller's global torch RNG.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.online = QNetwork(net_cfg, vocab_size=vocab_size).to(self.device)
         self.target = QNetwork(net_cfg, vocab_size=vocab_size).to(self.device)
         self.target.load_state_dict(self.online.state_dict())
         self.target.requires_grad_(False)
@@ -127,7 +132,7 @@ class DQNLearner:
         }
 
     def update(self, batch: Any) -> tuple[np.ndarray, dict[str, float]]:
-        """One gradient step on `batch` (see `TransitionBatch`); returns (new priorities (B,), metrics)."""
+        """One gradient step on `batch` (see `TransitionBatchLike`); returns (new priorities (B,), metrics)."""
         tensors = self._tensors(batch)
         self.online.train()
         loss, priorities, metrics = dqn_loss(self.online, self.target, huber_delta=self.cfg.huber_delta,

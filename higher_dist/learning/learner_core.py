@@ -113,3 +113,15 @@ class LearnerCore:
         else:
             # Without the replay the ratio restarts from an empty buffer.
             self.limiter.inserted = self.limiter.sampled = 0
+
+
+def relabel_record(m: dict) -> dict:
+    """The metrics record's relabeler fields, from a relabel strategy's `metrics()` (same keys whether
+    the strategy runs in the single-process runner or in the relabeler service)."""
+    return {
+        "relabel_strategy": m.get("strategy"), "generator_val_accuracy": m.get("val_accuracy"),
+        "relabel_dataset_size": m.get("dataset_size"), "relabel_gate_open": m.get("gate_open"),
+        "relabel_accuracy": m.get("relabel_accuracy"), "relabel_unparseable": m.get("unparseable"),
+        "generator_loss": m.get("loss"),
+    }
+

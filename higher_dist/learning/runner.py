@@ -15,7 +15,7 @@ import torch
 from higher_dist.config import Config
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, act, evaluate
 from higher_dist.learning.exploration import actor_epsilons
-from higher_dist.learning.learner_core import LearnerCore
+from higher_dist.learning.learner_core import LearnerCore, relabel_record
 from higher_dist.learning.relabel import make_relabeler
 
 GENERATOR_ROUND_FRAMES = 1000
@@ -91,15 +91,14 @@ class SingleProcessRunner:
         }
 
     def metrics(self, frames_done: int, elapsed: float) -> dict:
-        rel = self.relabeler.metrics()
         record = self.core.metrics()
+        record.update(relabel_record(self.relabeler.metrics()))
         record.update({
-            "frames": frames_done, "rejected_messages": 0,
-            "generator_val_accuracy": rel.get("val_accuracy"),
+            "frames": frames_done, "rejected_messages": 0, "preset": self.cfg.preset,
+            "world": self.cfg.world.name, "frames_budget": self.cfg.frames,
             "frames_per_s": round(frames_done / max(elapsed, 1e-9), 1),
             "updates_per_s": round(self.core.updates / max(elapsed, 1e-9), 2),
             "epsilon_mean": float(np.mean(actor_epsilons(self.cfg.exploration, 0, self.cfg.actors,
                                                          self.cfg.envs_per_actor, self.core.frames))),
         })
-        record.update({f"relabel_{k}": v for k, v in rel.items()})
         return record

@@ -19,7 +19,7 @@ import zmq
 from higher_dist import config as config_mod
 from higher_dist.config import Config
 from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM, Endpoints, bind_address
-from higher_dist.learning.learner_core import LearnerCore
+from higher_dist.learning.learner_core import LearnerCore, relabel_record
 from higher_dist.roles.registry import RoleRegistry
 from higher_dist.rundir import RunDir
 from higher_dist.wire import codec, sockets
@@ -51,6 +51,9 @@ class LearnerRole:
         self.started = time.time()
         if resume:
             self._resume()
+        elif self.rd.checkpoint_path("learner").exists():
+            raise ValueError(f"--run-dir {self.rd.path} already holds a run: add --resume to continue it, "
+                             "or choose another --run-dir")
         self.rd.write_config(cfg)
         ctx = zmq.Context.instance()
         b = lambda ep: bind_address(ep, bind_host)  # noqa: E731
@@ -195,12 +198,7 @@ class LearnerRole:
             "rejected_messages": self.rejects.total + sum(int(i.stats.get("rejected_messages", 0) or 0)
                                                           for i in self.registry.roles.values()),
             "learner_rejected": self.rejects.total,
-            "generator_val_accuracy": relabeler.get("val_accuracy"),
-            "relabel_dataset_size": relabeler.get("dataset_size"),
-            "relabel_gate_open": relabeler.get("gate_open"),
-            "relabels_per_s": relabeler.get("relabels_per_s"),
-            "relabel_accuracy": relabeler.get("relabel_accuracy"),
-            "epsilon_mean": relabeler.get("epsilon_mean"),
+            **relabel_record(relabeler), "relabels_per_s": relabeler.get("relabels_per_s"),
             **self.eval, "roles": roles,
         })
         eps = [i.stats.get("epsilon_mean") for i in self.registry.roles.values() if i.role == "actor"]

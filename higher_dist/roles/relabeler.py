@@ -26,7 +26,7 @@ from higher_dist.wire.episodes import pack_episodes, unpack_episodes
 from higher_dist.world.language import VOCAB
 
 log = logging.getLogger("higher.relabeler")
-CHECKPOINT_EVERY_S = 60.0
+CHECKPOINT_EVERY_S = 60.0  # at most; cfg.checkpoint_every_s when that is shorter
 TRAIN_SLICE = 5  # generator steps between two looks at the sockets
 IDLE_TRAIN_PER_S = 20.0  # cap on generator steps/s when there is nothing else to do (2 shared cores)
 
@@ -109,7 +109,7 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
                 client.stats({"episodes": received, "relabelled": relabelled,
                               "relabels_per_s": round(relabels_per_s, 2), **_flat(m)})
                 last_stats = now
-            if now - last_ckpt > CHECKPOINT_EVERY_S:
+            if now - last_ckpt > min(CHECKPOINT_EVERY_S, cfg.checkpoint_every_s):
                 rd.save_checkpoint("relabeler", strategy.state_dict())
                 last_ckpt = now
     finally:
