@@ -113,6 +113,7 @@ class DQNLearner:
         self._target_params = list(self.target.parameters())
         self.optimizer = _make_adam(self._online_params, dqn_cfg.lr, dqn_cfg.adam_eps)
         self.updates = 0
+        self.skipped_updates = 0  # steps refused for a non-finite gradient
 
     def _tensors(self, batch: Any) -> dict[str, torch.Tensor]:
         dev = self.device
@@ -139,11 +140,18 @@ class DQNLearner:
                                              double=self.cfg.double, **tensors)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(self._online_params, self.cfg.grad_clip, foreach=True)
-        self.optimizer.step()
+        grad_norm = float(torch.nn.utils.clip_grad_norm_(self._online_params, self.cfg.grad_clip, foreach=True))
+        # A NaN/inf gradient (e.g. from a corrupt batch) would poison every weight and Adam's moments
+        # for good: skip that step, and say so in the metrics.
+        finite = np.isfinite(grad_norm)
+        if finite:
+            self.optimizer.step()
+        else:
+            self.skipped_updates += 1
         self.updates += 1
         self._update_target()
-        metrics["grad_norm"] = float(grad_norm)
+        metrics["grad_norm"] = grad_norm
+        metrics["skipped_updates"] = float(self.skipped_updates)
         return priorities.cpu().numpy().astype(np.float32, copy=False), metrics
 
     def _update_target(self) -> None:
@@ -178,12 +186,15 @@ class DQNLearner:
         self.sync_target()
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything a checkpoint needs to resume learning exactly (RNG state is the caller's)."""
+        """Everything a checkpoint needs to resume learning exactly (RNG state is the caller's).
+
+        The tensors are the live ones: save (torch.save) before the next update, or deep-copy."""
         return {
             "online": self.online.state_dict(),
             "target": self.target.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "updates": self.updates,
+            "skipped_updates": self.skipped_updates,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -191,3 +202,4 @@ class DQNLearner:
         self.target.load_state_dict(state["target"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.updates = int(state["updates"])
+        self.skipped_updates = int(state.get("skipped_updates", 0))

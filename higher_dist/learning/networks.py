@@ -4,7 +4,10 @@ Inputs follow docs/architecture.md: a stack of k egocentric views `(B, k, 7, 7, 
 [kind, color, shade, size] and a PAD-padded mission `(B, L)` of word ids (PAD=0, words first).
 
 Sizes are kept lean on purpose: the learner must run thousands of samples per second on one CPU
-thread, and the 7x7 view with 10-token missions needs little capacity (see `higher-bench learner`).
+thread (measure with `higher-bench learner`, which takes `--net FIELD=VALUE` overrides), and a 7x7
+view with a 6-8 word mission needs little capacity. On a supervised probe (say where the described
+object lies in the view) embed 8 / convs (16, 32) / GRU 32 / hidden 64 scored within noise of a
+network four times its size, and FiLM beat concatenation.
 """
 from __future__ import annotations
 
@@ -29,7 +32,7 @@ class _SmallTableLookup(torch.autograd.Function):
     """`F.embedding(index, table)` with a cheaper backward for a small table and many lookups.
 
     The stock dense embedding backward sorts all indices; accumulating the gradient rows with
-    `index_add_` measured ~3x faster on one CPU thread for the view's B*k*49 cell lookups.
+    `index_add_` measured ~2.5x faster on one CPU thread for the view's B*k*49 cell lookups.
     """
 
     @staticmethod
@@ -136,9 +139,10 @@ class InstructionEncoder(nn.Module):
     """Word embedding + GRU; returns the hidden state after each mission's last real word.
 
     The GRU runs over the padded batch, cut to its longest mission, and the state at index length-1
-    is gathered. On one CPU thread this measured 5-15% faster for forward+backward than
-    pack_padded_sequence (which sorts, runs shrinking per-step batches and unsorts) at L=10, B=64..256;
-    trailing PADs cannot change the result because they come after the gathered step.
+    is gathered. On one CPU thread this measured 10-13% faster for forward+backward than
+    pack_padded_sequence (which sorts, runs shrinking per-step batches and unsorts) at L=10,
+    B=64..256, and the same without gradients; trailing PADs cannot change the result because they
+    come after the gathered step.
     """
 
     def __init__(self, vocab_size: int, word_embed_dim: int, hidden: int):

@@ -123,6 +123,12 @@ class Proc:
         self.pid = self.popen.pid
         self.tracker.add(self.pid)
 
+    @property
+    def label(self) -> str:
+        """The entry point's name for messages, e.g. cluster_main."""
+        code = self.argv[2] if len(self.argv) > 2 else ""
+        return code.split(" import ")[-1].split(" as ")[0] if " import " in code else " ".join(self.argv[:2])
+
     def running(self) -> bool:
         return self.popen.poll() is None
 
@@ -220,7 +226,7 @@ class RunWatch:
     def diagnostics(self) -> str:
         parts = []
         for p in self.procs:
-            parts.append(f"--- {' '.join(p.argv[3:5])}... rc={p.returncode}\n{tail(p.output(), 25)}")
+            parts.append(f"--- {p.label} (pid {p.pid}) rc={p.returncode}\n{tail(p.output(), 25)}")
         logs = self.run_dir / "logs"
         if logs.is_dir():
             for f in sorted(logs.glob("*.log")):
@@ -246,9 +252,11 @@ class RunWatch:
                     return r
             after = max(after, len(records))
             if need_running:
-                dead = [p for p in self.procs if not p.running()]
-                if dead:
-                    pytest.fail(f"waiting for {what}: a process exited with {dead[0].returncode}\n"
+                # A crash, or nothing left running that could write the record: no use waiting.
+                crashed = [p for p in self.procs if p.returncode not in (None, 0)]
+                if crashed or not any(p.running() for p in self.procs):
+                    pytest.fail(f"waiting for {what}: processes exited: "
+                                f"{[(p.label, p.returncode) for p in self.procs if not p.running()]}\n"
                                 + self.diagnostics())
             if time.monotonic() > deadline:
                 pytest.fail(f"no metrics record with {what} within {timeout:.0f} s\n" + self.diagnostics())

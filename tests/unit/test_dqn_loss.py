@@ -277,6 +277,20 @@ def test_gradients_are_clipped_to_the_configured_norm() -> None:
     assert clipped.item() == pytest.approx(1e-3, rel=1e-3)
 
 
+def test_non_finite_batch_is_skipped_without_touching_the_weights() -> None:
+    learner = make_learner()
+    batch = random_batch(np.random.default_rng(8), 8)
+    batch.reward[0] = np.nan
+    before = params_of(learner.online)
+    _, metrics = learner.update(batch)
+    assert not np.isfinite(metrics["grad_norm"]) and metrics["skipped_updates"] == 1.0
+    assert same(before, params_of(learner.online))
+    assert all(torch.isfinite(p).all() for p in learner.online.parameters())
+    batch.reward[0] = 0.0
+    learner.update(batch)  # the next good batch steps as usual
+    assert not same(before, params_of(learner.online))
+
+
 def test_learner_reduces_loss_on_a_fixed_batch() -> None:
     # A target that never moves turns the updates into a regression the learner must fit.
     learner = make_learner(lr=2e-3, target_period=10 ** 9)

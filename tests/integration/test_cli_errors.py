@@ -1,0 +1,113 @@
+"""Bad flags and configs are refused by the entry points themselves: exit code 2 and a message naming the
+problem, before anything starts. Each entry point runs once as a real subprocess, as a user would run it;
+the variants of one entry point's checks call the same `main` function in this process (what the console
+script returns is exactly its return value, or argparse's SystemExit code), which saves a Python start each.
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+import subprocess
+
+import pytest
+
+from hd_harness import entry
+from higher_dist import cli
+from higher_dist.launch.topology import free_base_port
+
+
+def run(role: str, *args, cwd, timeout: float = 90.0) -> subprocess.CompletedProcess:
+    return subprocess.run(entry(role, *args), cwd=cwd, capture_output=True, text=True, timeout=timeout,
+                          stdin=subprocess.DEVNULL)
+
+
+def call(main, *args) -> tuple[int, str]:
+    """(exit code, stderr) of an entry point's main called here; argparse errors exit via SystemExit."""
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as e:
+            code = e.code
+    return code, err.getvalue()
+
+
+@pytest.mark.parametrize("flags, expected", [
+    (["--preset", "nope"], ["--preset", "invalid choice", "'nope'"]),
+    (["--set", "nosuch.field=1"], ["nosuch.field", "no such config field"]),
+])
+def test_cluster_refuses_bad_flags_as_a_process(tmp_path, flags, expected):
+    run_dir = tmp_path / "run"
+    p = run("cluster", *flags, "--no-dashboard", "--port-base", free_base_port(), "--run-dir", run_dir,
+            cwd=tmp_path)
+    assert p.returncode == 2, (p.returncode, p.stdout, p.stderr)
+    assert "higher-cluster: error" in p.stderr
+    for text in expected:
+        assert text in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+    assert not run_dir.exists(), "a refused run must not create its run directory"
+
+
+@pytest.mark.parametrize("flags, expected", [
+    (["--preset", "nope"], ["--preset", "invalid choice", "'nope'"]),
+    (["--world", "nope"], ["--world", "invalid choice", "'nope'"]),
+    (["--actors", "0"], ["--actors", "positive integer", "0"]),
+    (["--envs-per-actor", "-3"], ["--envs-per-actor", "positive integer"]),
+    (["--world", "small", "--set", "world.n_objects=1000"], ["world.n_objects", "1000", "do not fit"]),
+    (["--set", "nosuch.field=1"], ["nosuch.field", "no such config field"]),
+    (["--set", "dqn.lr=fast"], ["dqn.lr", "expected a number"]),
+    (["--set", "frames"], ["--set", "FIELD=VALUE"]),
+])
+def test_cluster_refuses_bad_flags_and_configs(tmp_path, flags, expected):
+    run_dir = tmp_path / "run"
+    code, err = call(cli.cluster_main, *flags, "--no-dashboard", "--port-base", free_base_port(),
+                     "--run-dir", run_dir)
+    assert code == 2, (code, err)
+    assert "higher-cluster" in err and "error" in err
+    for text in expected:
+        assert text in err, err
+    assert not run_dir.exists(), "a refused run must not create its run directory"
+
+
+def test_cluster_refuses_to_overwrite_a_run_without_resume(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "learner.ckpt").write_bytes(b"a previous run")
+    code, err = call(cli.cluster_main, "--world", "small", "--no-dashboard", "--port-base", free_base_port(),
+                     "--run-dir", run_dir)
+    assert code == 2, (code, err)
+    assert "--resume" in err and str(run_dir) in err
+    assert (run_dir / "learner.ckpt").read_bytes() == b"a previous run"
+    assert not (run_dir / "logs").exists()
+
+
+@pytest.mark.parametrize("address", ["garbage", "127.0.0.1:5555"])
+def test_actor_refuses_a_malformed_learner_address(tmp_path, address):
+    p = run("actor", "--learner", address, cwd=tmp_path)
+    assert p.returncode == 2, (p.returncode, p.stdout, p.stderr)
+    assert "higher-actor: error" in p.stderr
+    assert repr(address) in p.stderr
+    assert "tcp://HOST:PORT" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+
+
+def test_learner_resume_without_a_checkpoint_is_refused(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    p = run("learner", "--world", "small", "--resume", "--run-dir", empty, "--port-base", free_base_port(),
+            cwd=tmp_path)
+    assert p.returncode == 2, (p.returncode, p.stdout, p.stderr)
+    assert "higher-learner: error" in p.stderr and "--resume" in p.stderr and str(empty) in p.stderr
+    assert "no learner checkpoint" in p.stderr
+    assert "Traceback" not in p.stderr
+    assert not (empty / "learner.ckpt").exists() and not (empty / "config.json").exists()
+
+
+def test_plot_of_an_empty_directory_is_refused(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    p = run("plot", empty, "--out", tmp_path / "figures", cwd=tmp_path)
+    assert p.returncode == 2, (p.returncode, p.stdout, p.stderr)
+    assert str(empty) in p.stderr and "no run" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+    assert not list(tmp_path.rglob("*.png")), "no figure for a directory without a run"

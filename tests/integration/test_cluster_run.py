@@ -1,0 +1,188 @@
+"""End to end: `higher-cluster` with a learner, a relabeler and two actors as real processes over real sockets
+on 127.0.0.1. One run to a small frame budget is shared by the assertions about a finished run; a second
+cluster is stopped with SIGTERM."""
+from __future__ import annotations
+
+import math
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from hd_harness import Proc, RunWatch, learner_pid, role_rows, start_cluster
+from higher_dist.rundir import RunDir
+
+pytestmark = pytest.mark.slow
+
+BUDGET = 3500  # env frames: about 15 s of acting here, past the generator's gate and the first relabels
+RUN_TIMEOUT_S = 150.0
+
+
+@dataclass
+class FinishedRun:
+    run_dir: Path
+    watch: RunWatch
+    launcher: Proc
+    returncode: int | None
+    seconds: float
+    records: list[dict[str, Any]] = field(default_factory=list)
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> FinishedRun:
+    base = tmp_path_factory.mktemp("cluster_run")
+    run_dir = base / "run"
+    watch, launcher, _ = start_cluster(run_dir, base, frames=BUDGET)
+    t0 = time.monotonic()
+    try:
+        # Poll while it runs: the roles table and the launcher's children give every pid to check later.
+        while launcher.running() and time.monotonic() - t0 < RUN_TIMEOUT_S:
+            launcher.snapshot()
+            watch.records()
+            time.sleep(0.3)
+        rc = launcher.wait(5)
+        seconds = time.monotonic() - t0
+        if rc is None:
+            pytest.fail(f"the cluster did not finish {BUDGET} frames in {RUN_TIMEOUT_S:.0f} s\n"
+                        + watch.diagnostics())
+        yield FinishedRun(run_dir, watch, launcher, rc, seconds, watch.records())
+    finally:
+        watch.cleanup()
+
+
+def test_exits_zero_when_the_learner_reaches_the_budget(finished_run):
+    assert finished_run.returncode == 0, finished_run.watch.diagnostics()
+    assert "learner finished the run" in finished_run.watch.log("cluster")
+
+
+def test_metrics_record_increasing_frames_up_to_the_budget(finished_run):
+    records = finished_run.records
+    assert len(records) >= 5, f"only {len(records)} metrics records"
+    frames = [r["frames"] for r in records]
+    assert all(b >= a for a, b in zip(frames, frames[1:])), f"frames went backwards: {frames}"
+    assert frames[0] < frames[-1]
+    assert frames[-1] >= BUDGET
+    times = [r["time"] for r in records]
+    assert all(b >= a for a, b in zip(times, times[1:]))
+
+
+def test_the_learner_updates(finished_run):
+    last = finished_run.records[-1]
+    assert last["updates"] > 0
+    updates = [r["updates"] for r in finished_run.records]
+    assert all(b >= a for a, b in zip(updates, updates[1:]))
+    assert last["replay_size"] > 0
+
+
+def test_actors_receive_newer_weights(finished_run):
+    records = finished_run.records
+    versions = [r["weights_version"] for r in records]
+    assert all(b >= a for a, b in zip(versions, versions[1:])), versions
+    assert versions[-1] > versions[0]
+    # What each actor runs: the learner's version minus the actor's lag. It must be finite and move on.
+    received: dict[int, list[int]] = {}
+    for r in records:
+        for row in role_rows(r, "actor"):
+            lag = row["weights_lag"]
+            if lag is None:
+                continue
+            assert isinstance(lag, int) and lag >= 0 and math.isfinite(lag), row
+            received.setdefault(row["id"], []).append(r["weights_version"] - lag)
+    assert set(received) == {0, 1}, f"actors that reported a weights version: {sorted(received)}"
+    for actor, seen in received.items():
+        assert max(seen) > min(seen), f"actor {actor} never got newer weights: {seen}"
+        assert max(seen) > 0
+    lags = [r["weights_lag_mean"] for r in records if r.get("weights_lag_mean") is not None]
+    assert lags and all(math.isfinite(x) for x in lags)
+
+
+def test_every_role_registered_and_was_alive(finished_run):
+    rows = [row for r in finished_run.records for row in r["roles"]]
+    alive = {(row["role"], row["id"]) for row in rows if row["state"] == "alive"}
+    assert alive >= {("actor", 0), ("actor", 1), ("relabeler", 0)}, alive
+    assert not [row for row in rows if row["state"] == "dead"], "a role was marked dead in a healthy run"
+
+
+def test_relabelled_episodes_arrive(finished_run):
+    last = finished_run.records[-1]
+    assert last["relabelled_episodes"] > 0, {k: v for k, v in last.items() if k != "roles"}
+    assert last["relabel_dataset_size"] and last["relabel_dataset_size"] >= 20
+    assert last["replay_relabelled"] > 0
+
+
+def test_no_message_was_rejected(finished_run):
+    for r in finished_run.records:
+        assert r["rejected_messages"] == 0 and r["learner_rejected"] == 0, r
+        assert all(row["rejected"] == 0 for row in r["roles"]), r["roles"]
+
+
+def test_run_dir_holds_config_and_checkpoints(finished_run):
+    rd = RunDir(finished_run.run_dir)
+    cfg = rd.read_config()
+    assert cfg is not None, "config.json missing"
+    assert cfg["preset"] == "higher" and cfg["world"]["name"] == "small" and cfg["frames"] == BUDGET
+    assert cfg["actors"] == 2 and cfg["envs_per_actor"] == 8 and cfg["relabel"]["strategy"] == "learned"
+    learner = rd.load_checkpoint("learner")
+    assert learner is not None, "learner.ckpt missing"
+    # The final checkpoint is written right after the final metrics record: the same counters.
+    last = finished_run.records[-1]
+    assert learner["core"]["counters"]["updates"] == last["updates"]
+    assert learner["core"]["counters"]["frames"] == last["frames"]
+    relabeler = rd.load_checkpoint("relabeler")
+    assert relabeler is not None, "relabeler.ckpt missing"
+    assert relabeler["name"] == "learned"
+    assert len(relabeler["trainer"]["dataset"]["views"]) >= 20
+    assert not list(finished_run.run_dir.glob("*.tmp*")), "a temporary checkpoint file was left"
+
+
+def test_no_process_left_behind(finished_run):
+    watch = finished_run.watch
+    assert len(watch.tracker.seen) >= 5, f"tracked only {sorted(watch.tracker.seen)}"  # launcher + 4 roles
+    assert watch.leftovers() == []
+
+
+@pytest.fixture
+def cleanup():
+    watches: list[RunWatch] = []
+    yield watches.append
+    for w in watches:
+        w.cleanup()
+
+
+def test_sigterm_stops_every_role_cleanly(tmp_path, cleanup):
+    run_dir = tmp_path / "run"
+    # The default checkpoint period (120 s; the relabeler's is 60 s): any checkpoint is the one from stopping.
+    watch, launcher, _ = start_cluster(run_dir, tmp_path, frames=10_000_000, checkpoint_every_s=None)
+    cleanup(watch)
+    seen = watch.wait_for("updates > 0", lambda r: r["updates"] > 0, timeout=120)
+    learner = learner_pid(launcher)
+    assert learner is not None
+    watch.tracker.add(learner)
+    assert not (run_dir / "learner.ckpt").exists() and not (run_dir / "relabeler.ckpt").exists()
+    launcher.snapshot()
+    roles = {(row["role"], row["id"]): row["pid"] for row in seen["roles"]}
+    assert set(roles) == {("actor", 0), ("actor", 1), ("relabeler", 0)}
+
+    t0 = time.monotonic()
+    launcher.send(signal.SIGTERM)
+    rc = launcher.wait(30)
+    took = time.monotonic() - t0
+    assert rc == 0, f"exit code {rc} after SIGTERM ({took:.1f} s)\n" + watch.diagnostics()
+    assert watch.leftovers() == []
+
+    log = watch.log("cluster")
+    assert "stopped on request" in log
+    assert "killing it" not in log, "a role had to be killed after SIGTERM\n" + log
+    rd = RunDir(run_dir)
+    state = rd.load_checkpoint("learner")
+    assert state is not None, "no learner checkpoint after SIGTERM"
+    assert state["core"]["counters"]["updates"] >= seen["updates"]
+    assert rd.read_metrics()[-1]["updates"] == state["core"]["counters"]["updates"]
+    relabeler = rd.load_checkpoint("relabeler")
+    assert relabeler is not None, "no relabeler checkpoint after SIGTERM"
+    assert "relabeler stopped" in watch.log("relabeler")
+    for i in (0, 1):
+        assert f"actor {i} stopped after" in watch.log(f"actor{i}")
