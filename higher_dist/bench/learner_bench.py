@@ -86,6 +86,47 @@ def _parse_override(text: str) -> tuple[str, object]:
     return name, value
 
 
+def synthetic_episode(rng: np.random.Generator, length: int, view_size: int = 7):
+    """A random but valid episode (view values in range, a mission of words) for filling a replay."""
+    from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
+
+    maxima = np.array([5, 7, 6, 6])
+    frames = (rng.random((length + 1, view_size, view_size, 4)) * maxima).astype(np.uint8)
+    outcome = int(rng.choice([SUCCESS, WRONG_PICK, TIMEOUT]))
+    rewards = np.zeros(length, np.float32)
+    rewards[-1] = 1.0 if outcome == SUCCESS else 0.0
+    from higher_dist.world.language import VOCAB
+
+    words = rng.integers(3, len(VOCAB), size=int(rng.integers(5, 9)))
+    mission = np.zeros(10, np.int64)
+    mission[: words.size] = words
+    return Episode(frames=frames, actions=rng.integers(0, 4, length).astype(np.uint8), rewards=rewards,
+                   mission=mission, outcome=outcome, picked=np.full(4, -1, np.int8), goal=np.zeros(4, np.int8))
+
+
+def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmup: int = 5) -> float:
+    """Updates/s of the learner alone, through the same path as in the cluster (LearnerCore.update:
+    prioritized sampling from a full replay, the DQN step, the priority update)."""
+    from higher_dist.config import make_config, override
+    from higher_dist.learning.learner_core import LearnerCore
+
+    cfg = cfg or make_config("higher", "paper")
+    cfg = override(cfg, **{"dqn.batch_size": batch_size, "replay.capacity": 100_000})
+    torch.set_num_threads(cfg.torch_threads)
+    core = LearnerCore(cfg)
+    rng = np.random.default_rng(0)
+    pool = [synthetic_episode(rng, int(rng.integers(5, cfg.world.max_steps + 1))) for _ in range(64)]
+    while core.replay.transitions_added < cfg.replay.capacity:
+        core.replay.add_episode(pool[int(rng.integers(len(pool)))])
+    for _ in range(warmup):
+        core.update()
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        core.update()
+        n += 1
+    return n / (time.perf_counter() - t0)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="higher-bench learner", description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=3.0, help="timed seconds per batch size")
@@ -121,6 +162,15 @@ def main(argv: list[str] | None = None) -> int:
         summary[f"b{b}_updates_per_s"] = round(r["updates_per_s"], 1)
         summary[f"b{b}_samples_per_s"] = round(r["samples_per_s"], 0)
         summary[f"b{b}_cpu_samples_per_s"] = round(r["cpu_samples_per_s"], 0)
+    if args.device == "cpu" and not args.net:
+        # The same, through the full learner path: sampling a full prioritized replay and updating
+        # priorities. This is the ceiling the cluster's learner_ratio is measured against.
+        print("with a full prioritized replay (sample + update + priorities), default config:")
+        for b in sizes:
+            ups = measure_updates_per_s(b, args.seconds)
+            print(f"{b:>6} {ups:>10.1f} {ups * b:>10.0f}")
+            summary[f"replay_b{b}_updates_per_s"] = round(ups, 1)
+            summary[f"replay_b{b}_samples_per_s"] = round(ups * b, 0)
     print(json.dumps(summary))
     return 0
 
