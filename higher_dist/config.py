@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import numbers
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -259,10 +260,15 @@ def _check(ok: bool, message: str) -> None:
         raise ConfigError(message)
 
 
-def validate(cfg: Config) -> None:
-    """Refuse a config that cannot work, naming the field."""
-    w = cfg.world
-    _check(cfg.preset in PRESETS, f"preset: unknown preset {cfg.preset!r}; choose one of {', '.join(PRESETS)}")
+def validate_world(w: WorldConfig) -> None:
+    """Refuse a world that cannot be built, naming the field. Also called by the world itself, which
+    is built on its own by tests, benchmarks and the Gymnasium view."""
+    if not isinstance(w, WorldConfig):
+        raise ConfigError(f"world: expected a WorldConfig, got {type(w).__name__}")
+    for name in ("room_size", "n_objects", "max_steps", "view_size", "heldout_count", "split_seed"):
+        value = getattr(w, name)
+        _check(isinstance(value, numbers.Integral) and not isinstance(value, bool),
+               f"world.{name}: expected an integer, got {value!r}")
     _check(w.room_size >= 2, f"world.room_size: must be >= 2, got {w.room_size}")
     _check(w.n_objects >= 1, f"world.n_objects: must be >= 1, got {w.n_objects}")
     # One cell is the agent's, the others may hold objects.
@@ -270,7 +276,8 @@ def validate(cfg: Config) -> None:
            f"world.n_objects: {w.n_objects} objects do not fit with the agent in a "
            f"{w.room_size}x{w.room_size} room ({w.room_size ** 2 - 1} free cells)")
     _check(w.max_steps >= 1, f"world.max_steps: must be >= 1, got {w.max_steps}")
-    _check(w.view_size >= 3 and w.view_size % 2 == 1, f"world.view_size: must be odd and >= 3, got {w.view_size}")
+    _check(3 <= w.view_size <= 15 and w.view_size % 2 == 1,
+           f"world.view_size: must be odd and in [3, 15], got {w.view_size}")
     for name, values, full in (("colors", w.colors, COLORS), ("types", w.types, TYPES),
                                ("shades", w.shades, SHADES), ("sizes", w.sizes, SIZES)):
         _check(len(values) >= 1, f"world.{name}: needs at least one value")
@@ -280,6 +287,13 @@ def validate(cfg: Config) -> None:
     n_kinds = len(w.colors) * len(w.types) * len(w.shades) * len(w.sizes)
     _check(0 <= w.heldout_count < n_kinds,
            f"world.heldout_count: must be in [0, {n_kinds}) for {n_kinds} distinct objects, got {w.heldout_count}")
+
+
+def validate(cfg: Config) -> None:
+    """Refuse a config that cannot work, naming the field."""
+    _check(cfg.preset in PRESETS, f"preset: unknown preset {cfg.preset!r}; choose one of {', '.join(PRESETS)}")
+    validate_world(cfg.world)
+    w = cfg.world
     n = cfg.network
     _check(n.fusion in ("film", "concat"), f"network.fusion: must be film or concat, got {n.fusion!r}")
     _check(n.frame_stack >= 1, f"network.frame_stack: must be >= 1, got {n.frame_stack}")

@@ -10,7 +10,7 @@ import itertools
 
 import numpy as np
 
-from higher_dist.config import COLORS, SHADES, SIZES, TYPES, ConfigError, WorldConfig
+from higher_dist.config import COLORS, SHADES, SIZES, TYPES, ConfigError, WorldConfig, validate_world
 
 ATTR_NAMES = ("color", "type", "shade", "size")
 GLOBAL_TABLES = (COLORS, TYPES, SHADES, SIZES)
@@ -21,45 +21,6 @@ _CONFIG_FIELDS = ("colors", "types", "shades", "sizes")  # WorldConfig fields, i
 # first try almost always and the small world one try in three, so this bound is never reached by a
 # split that exists with non-negligible probability.
 _SPLIT_TRIES = 10_000
-
-
-def validate_world(cfg: WorldConfig) -> None:
-    """Refuse a world config that cannot be built, naming the field (ConfigError is a ValueError).
-
-    `config.validate` checks a whole run config; the world is also built on its own (tests, the
-    benchmark, the Gymnasium view), so the world-level checks are repeated here.
-    """
-    if not isinstance(cfg, WorldConfig):
-        raise ConfigError(f"world: expected a WorldConfig, got {type(cfg).__name__}")
-
-    def check(ok: bool, message: str) -> None:
-        if not ok:
-            raise ConfigError(message)
-
-    for name in ("room_size", "n_objects", "max_steps", "view_size", "heldout_count", "split_seed"):
-        value = getattr(cfg, name)
-        check(isinstance(value, (int, np.integer)) and not isinstance(value, bool),
-              f"world.{name}: expected an integer, got {value!r}")
-    check(cfg.room_size >= 2, f"world.room_size: must be >= 2, got {cfg.room_size}")
-    check(cfg.n_objects >= 1, f"world.n_objects: must be >= 1, got {cfg.n_objects}")
-    free_cells = cfg.room_size ** 2 - 1  # one interior cell is the agent's
-    check(cfg.n_objects <= free_cells,
-          f"world.n_objects: {cfg.n_objects} objects do not fit with the agent in a "
-          f"{cfg.room_size}x{cfg.room_size} room ({free_cells} free cells)")
-    check(cfg.max_steps >= 1, f"world.max_steps: must be >= 1, got {cfg.max_steps}")
-    check(cfg.view_size >= 3 and cfg.view_size % 2 == 1,
-          f"world.view_size: must be odd and >= 3, got {cfg.view_size}")
-    check(cfg.view_size <= 15, f"world.view_size: at most 15 (the view is uint8 codes), got {cfg.view_size}")
-    for name, table in zip(_CONFIG_FIELDS, GLOBAL_TABLES):
-        values = getattr(cfg, name)
-        check(len(values) >= 1, f"world.{name}: needs at least one value")
-        check(len(set(values)) == len(values), f"world.{name}: repeated values {list(values)}")
-        unknown = [v for v in values if v not in table]
-        check(not unknown, f"world.{name}: unknown values {unknown}; allowed: {', '.join(table)}")
-    n_kinds = len(cfg.colors) * len(cfg.types) * len(cfg.shades) * len(cfg.sizes)
-    check(0 <= cfg.heldout_count < n_kinds,
-          f"world.heldout_count: must be in [0, {n_kinds}) for {n_kinds} distinct objects, "
-          f"got {cfg.heldout_count}")
 
 
 class ObjectSpace:
