@@ -21,6 +21,10 @@ from higher_dist.wire.security import CurveClient
 from higher_dist.wire.schema import PROTOCOL_VERSION
 
 
+# The learner's answer to a peer it does not know (it restarted since that peer's hello).
+REJOIN = "unknown peer: say hello first"
+
+
 class Refused(RuntimeError):
     pass
 
@@ -51,10 +55,10 @@ class ControlClient:
         """Hello until welcomed; returns the learner's config and endpoints. KeyboardInterrupt when
         `should_stop()` turns true while waiting (a signal arrived)."""
         deadline = time.time() + timeout_s
-        hello = {"role": self.role, "host": socket.gethostname(), "pid": os.getpid(),
-                 "protocol": PROTOCOL_VERSION, "index": self.index}
+        self._hello = {"role": self.role, "host": socket.gethostname(), "pid": os.getpid(),
+                       "protocol": PROTOCOL_VERSION, "index": self.index}
         while time.time() < deadline:
-            self.send("hello", hello)
+            self.send("hello", self._hello)
             msg = sockets.recv_message(self.sock, 1000, self.rejects, "control", self._version_error)
             if should_stop is not None and should_stop():
                 raise KeyboardInterrupt
@@ -66,6 +70,7 @@ class ControlClient:
                 if msg.fields["protocol"] != PROTOCOL_VERSION:
                     raise Refused(f"protocol mismatch: learner {msg.fields['protocol']}, this role {PROTOCOL_VERSION}")
                 self.index = msg.fields["index"]
+                self._hello["index"] = self.index  # a later hello (rejoin) keeps this index
                 return from_dict(msg.fields["config"]), dict(msg.fields["endpoints"])
         raise TimeoutError(f"no welcome from the learner within {timeout_s:.0f} s")
 
@@ -84,6 +89,8 @@ class ControlClient:
                 return self.stop_reason is not None
             if msg.type == "stop":
                 self.stop_reason = msg.fields.get("reason") or "stop"
+            elif msg.type == "refuse" and msg.fields["reason"] == REJOIN:
+                self.send("hello", self._hello)  # the learner restarted: join it again
 
     def heartbeat(self, counters: dict[str, float], state: str = "running", every_s: float = 1.0) -> None:
         now = time.time()

@@ -20,6 +20,7 @@ from higher_dist import config as config_mod
 from higher_dist.config import Config
 from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM, Endpoints, bind_address
 from higher_dist.learning.learner_core import LearnerCore, relabel_record
+from higher_dist.roles.client import REJOIN
 from higher_dist.roles.registry import RoleRegistry
 from higher_dist.rundir import RunDir
 from higher_dist.wire import codec, sockets
@@ -118,14 +119,16 @@ class LearnerRole:
                 self._welcome(identity, index)
             return
         info = self.registry.seen(identity)
-        if info is None and msg.type in ("heartbeat", "stats", "register"):
-            # A role that joined before this learner restarted: known again by what it reports.
-            index = f.get("id", 0)
-            info = self.registry.hello(f["role"], max(index, 0), identity, "", 0)
         if info is None:
+            # Only a peer that said hello is heard. A role that joined before this learner restarted
+            # is asked to say hello again (the client does so on this reply).
             self.rejects.add("unknown_peer")
+            self._send(identity, "refuse", {"reason": REJOIN})
             return
         if msg.type == "register":  # repeated by the relabeler, so a restarted learner learns it again
+            if info.role != "relabeler":
+                self.rejects.add("field")
+                return
             self.relabeler_endpoint = f["endpoint"]
             for ident, index in self.pending_hellos:
                 self._welcome(ident, index)
