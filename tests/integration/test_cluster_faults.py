@@ -284,6 +284,35 @@ def test_killed_relabeler_resumes_its_generator_and_dataset(cluster):
     assert "learner exited" not in cluster.watch.log("cluster")
 
 
+def test_killed_learner_resumes_and_the_running_roles_rejoin_it(cluster):
+    ckpt = cluster.watch.wait_until("a learner checkpoint with updates",
+                                    lambda: (s := RunDir(cluster.run_dir).load_checkpoint("learner"))
+                                    and s["core"]["counters"]["updates"] > 0 and s, timeout=60)
+    before = cluster.records()[-1]
+    others = {(role, i): _alive_pid(before, role, i) for role, i in (("actor", 0), ("actor", 1), ("relabeler", 0))}
+    old_pid = learner_pid(cluster.launcher)
+    cluster.watch.tracker.add(old_pid)
+    log_offset = len(cluster.watch.log("cluster"))
+    psutil.Process(old_pid).send_signal(signal.SIGKILL)
+
+    cluster.watch.wait_until("the supervisor restarts the learner with --resume",
+                             lambda: "restarting learner" in cluster.watch.log("cluster")[log_offset:], timeout=30)
+    n = len(cluster.records())
+
+    def rejoined(r):
+        return (r["updates"] > ckpt["core"]["counters"]["updates"] + 20
+                and all((row := role_row(r, role, i)) is not None and row["state"] == "alive" and row["pid"] == pid
+                        for (role, i), pid in others.items()))
+    after = cluster.watch.wait_for("the same actors and relabeler rejoin, learning goes on", rejoined,
+                                   timeout=120, after=n)
+    # Counters continued from the checkpoint rather than from zero.
+    first = cluster.records()[n]
+    assert first["updates"] >= ckpt["core"]["counters"]["updates"]
+    assert first["frames"] >= ckpt["core"]["counters"]["frames"]
+    assert after["frames"] > first["frames"]  # experience flows again through the untouched roles
+    assert learner_pid(cluster.launcher) not in (None, old_pid)
+
+
 def test_cluster_stops_cleanly_after_the_faults(cluster):
     cluster.launcher.snapshot()
     cluster.watch.records()
@@ -292,7 +321,7 @@ def test_cluster_stops_cleanly_after_the_faults(cluster):
     assert rc == 0, cluster.watch.diagnostics()
     # Restarted roles included: every process of the run is gone.
     assert cluster.watch.leftovers() == []
-    assert len(cluster.watch.tracker.seen) >= 7  # launcher, learner, relabeler x2, actor x3
+    assert len(cluster.watch.tracker.seen) >= 7  # launcher, learner x2, relabeler x2, actor x3
 
 
 # ------------------------------------------------------------------------------------------ learner resume
