@@ -189,3 +189,16 @@ def test_sigterm_stops_every_role_cleanly(tmp_path, cleanup):
     assert "relabeler stopped" in watch.log("relabeler")
     for i in (0, 1):
         assert f"actor {i} stopped after" in watch.log(f"actor{i}")
+
+
+def test_higher_plot_draws_the_finished_run(finished_run, tmp_path, capsys):
+    from higher_dist.plot import main as plot_main
+
+    out = tmp_path / "figures"
+    assert plot_main([str(finished_run.run_dir), "--out", str(out)]) == 0
+    written = {p.name: p for p in out.glob("*.png")}
+    # The run has training success, relabeller accuracy and replay composition over frames.
+    assert {"success_rate.png", "generator_accuracy.png", "replay_composition.png"} <= set(written), written
+    for path in written.values():
+        data = path.read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
