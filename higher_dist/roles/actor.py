@@ -25,6 +25,7 @@ from higher_dist.wire.episodes import pack_episodes
 
 log = logging.getLogger("higher.actor")
 SEND_EVERY_S = 0.25  # a batch leaves at least this often, full or not
+WAIT_MS = 20  # longest wait for room on the episodes socket before looking at control again
 
 
 def run_actor(learner: str, actor_id: int | None = None, keys: str | None = None, threads: int | None = None) -> int:
@@ -71,12 +72,15 @@ def run_actor(learner: str, actor_id: int | None = None, keys: str | None = None
             except codec.WireError as e:
                 client.rejects.add(e.reason)
             if pending is not None:
-                try:
-                    out.send_multipart(pending, flags=zmq.NOBLOCK, copy=False)
-                    pending = None
-                except zmq.Again:
+                # A full socket is the learner holding its replay ratio: wait for room, do not spin.
+                if out.poll(WAIT_MS, zmq.POLLOUT):
+                    try:
+                        out.send_multipart(pending, flags=zmq.NOBLOCK, copy=False)
+                        pending = None
+                    except zmq.Again:
+                        pass
+                if pending is not None:
                     client.heartbeat({"frames": frames, "weights_version": version})
-                    time.sleep(0.002)
                     continue
             # The global frame count drives linear epsilon decay; each actor sees about 1/N of it.
             eps = actor_epsilons(cfg.exploration, idx, cfg.actors, collector.n_envs, frames * cfg.actors)

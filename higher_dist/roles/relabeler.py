@@ -28,6 +28,7 @@ from higher_dist.world.language import VOCAB
 log = logging.getLogger("higher.relabeler")
 CHECKPOINT_EVERY_S = 60.0  # at most; cfg.checkpoint_every_s when that is shorter
 TRAIN_SLICE = 5  # generator steps between two looks at the sockets
+WAIT_MS = 20  # longest wait on a socket before looking at control, training and stats again
 IDLE_TRAIN_PER_S = 20.0  # cap on generator steps/s when there is nothing else to do (2 shared cores)
 
 
@@ -69,7 +70,8 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
     relabels_per_s = 0.0
     try:
         while not stop and not client.poll():
-            if pending is not None:
+            # Wait, briefly, rather than spin: a full outbox is the learner holding its replay ratio.
+            if pending is not None and outbox.poll(WAIT_MS, zmq.POLLOUT):
                 try:
                     outbox.send_multipart(pending, flags=zmq.NOBLOCK, copy=False)
                     pending = None
@@ -77,7 +79,7 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
                     pass
             msg = None
             if pending is None:
-                msg = sockets.recv_message(inbox, 0 if trainable else 50, client.rejects)
+                msg = sockets.recv_message(inbox, WAIT_MS, client.rejects)
             if msg is not None and msg.type == "episodes":
                 try:
                     episodes = unpack_episodes(msg, max_steps=cfg.world.max_steps,
