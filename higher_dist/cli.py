@@ -35,7 +35,8 @@ def _positive_int(text: str) -> int:
 def add_config_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", choices=PRESETS, default="higher", help="the paper's method to run")
     p.add_argument("--world", choices=WORLDS, default="paper", help="paper: 10x10, 10 objects; small: tests")
-    p.add_argument("--actors", type=_positive_int, default=None, help="actor processes")
+    p.add_argument("--actors", type=_positive_int, default=None,
+                   help="actor processes (higher-cluster's default fits the machine: half its cores, 1 to 8)")
     p.add_argument("--envs-per-actor", type=_positive_int, default=None, help="environments per actor")
     p.add_argument("--frames", type=_positive_int, default=None, help="stop after this many env frames")
     p.add_argument("--seed", type=int, default=0)
@@ -89,8 +90,10 @@ def cluster_main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     def go() -> int:
-        from higher_dist.launch.local_cluster import run_local_cluster
+        from higher_dist.launch.local_cluster import default_actors, run_local_cluster
 
+        if args.actors is None:
+            args.actors = default_actors()
         cfg = config_from_args(args)
         import time
         from pathlib import Path

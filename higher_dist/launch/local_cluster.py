@@ -43,6 +43,13 @@ class RoleProcess:
             out.close()  # the child holds its own descriptor
 
 
+def default_actors() -> int:
+    """Actors that fit this machine beside the learner and the relabeler: half the cores, 1 to 8. On
+    2 cores the learner's updates bound the frame rate anyway (docs/benchmarks.md), and one actor with
+    all the environments costs less CPU than two."""
+    return max(1, min(8, (os.cpu_count() or 2) // 2))
+
+
 def _cli(role: str, *args: str) -> list[str]:
     return [sys.executable, "-c", f"import sys; from higher_dist.cli import {role}_main as m; sys.exit(m())", *args]
 
