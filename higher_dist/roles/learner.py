@@ -21,7 +21,7 @@ from higher_dist.config import Config
 from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM, Endpoints, bind_address
 from higher_dist.learning.learner_core import LearnerCore, relabel_record
 from higher_dist.roles.client import REJOIN
-from higher_dist.roles.registry import RoleRegistry
+from higher_dist.roles.registry import RateMeter, RoleRegistry
 from higher_dist.rundir import RunDir
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.security import CurveServer, start_authenticator
@@ -50,6 +50,7 @@ class LearnerRole:
         self.stop_reason = ""
         self.eval: dict[str, float] = {}
         self.started = time.time()
+        self.updates_rate = RateMeter()
         if resume:
             self._resume()
         elif self.rd.checkpoint_path("learner").exists():
@@ -196,7 +197,7 @@ class LearnerRole:
         r.update({
             "elapsed_s": round(elapsed, 1), "preset": self.cfg.preset, "world": self.cfg.world.name,
             "frames_budget": self.cfg.frames, "weights_version": self.weights_version,
-            "frames_per_s": round(sum(actor_fps), 1), "updates_per_s": round(self._rate("updates"), 2),
+            "frames_per_s": round(sum(actor_fps), 1), "updates_per_s": round(self.updates_rate(self.core.updates), 2),
             "weights_lag_mean": round(float(np.mean(lags)), 1) if lags else None,
             "rejected_messages": self.rejects.total + sum(int(i.stats.get("rejected_messages", 0) or 0)
                                                           for i in self.registry.roles.values()),
@@ -208,16 +209,6 @@ class LearnerRole:
         eps = [e for e in eps if e is not None]
         r["epsilon_mean"] = round(float(np.mean(eps)), 4) if eps else None
         return r
-
-    def _rate(self, key: str) -> float:
-        now, value = time.time(), getattr(self.core, key)
-        last = getattr(self, f"_last_{key}", None)
-        setattr(self, f"_last_{key}", (now, value))
-        if last is None or now - last[0] <= 0:
-            return 0.0
-        rate = (value - last[1]) / (now - last[0])
-        setattr(self, f"_rate_{key}", rate)
-        return rate
 
     # -- loop ---------------------------------------------------------------------------------------
     def run(self) -> int:

@@ -74,3 +74,23 @@ class RoleRegistry:
         now = time.time()
         return [i for (r, _), i in self.roles.items()
                 if r == role and not i.stopped and now - i.last_seen <= self.dead_after_s]
+
+
+class RateMeter:
+    """The rate of a growing counter, over windows of at least `min_window_s` (a shorter one, such as
+    the final record's, keeps the last rate instead of reporting a meaningless one)."""
+
+    def __init__(self, min_window_s: float = 0.25):
+        self.min_window_s = min_window_s
+        self.rate = 0.0
+        self._since: tuple[float, float] | None = None
+
+    def __call__(self, value: float, now: float | None = None) -> float:
+        now = time.time() if now is None else now
+        if self._since is None:
+            self._since = (now, value)
+        elif now - self._since[0] >= self.min_window_s:
+            self.rate = (value - self._since[1]) / (now - self._since[0])
+            self._since = (now, value)
+        return self.rate
+

@@ -1,0 +1,35 @@
+"""The learner's table of roles (liveness, lag) and its rate meter: pure bookkeeping, no sockets."""
+from higher_dist.roles.registry import RateMeter, RoleRegistry
+
+
+def test_silent_roles_are_marked_dead_and_stopping_ones_stopped():
+    reg = RoleRegistry(dead_after_s=10.0)
+    a = reg.hello("actor", 0, b"a0", "host", 11)
+    reg.hello("actor", 1, b"a1", "host", 12)
+    r = reg.hello("relabeler", 0, b"r0", "host", 13)
+    a.stats["weights_version"] = 80
+    a.last_seen -= 30  # silent for 30 s
+    r.stopped = True
+    rows = {(row["role"], row["id"]): row for row in reg.table(learner_version=100)}
+    assert rows[("actor", 0)]["state"] == "dead" and rows[("actor", 0)]["weights_lag"] == 20
+    assert rows[("actor", 1)]["state"] == "alive" and rows[("actor", 1)]["weights_lag"] is None
+    assert rows[("relabeler", 0)]["state"] == "stopped"
+    assert [i.id for i in reg.alive("actor")] == [1]
+    assert reg.seen(b"a0") is a and reg.seen(b"nobody") is None
+    assert reg.next_index("actor") == 2
+
+
+def test_a_restarted_role_replaces_its_old_entry():
+    reg = RoleRegistry()
+    reg.hello("actor", 0, b"old", "h", 1)
+    new = reg.hello("actor", 0, b"new", "h", 2)
+    assert reg.roles[("actor", 0)] is new and new.pid == 2
+    assert len(reg.table(0)) == 1
+
+
+def test_rate_meter_measures_over_windows_and_keeps_the_rate_on_a_short_one():
+    meter = RateMeter(min_window_s=0.5)
+    assert meter(0, now=0.0) == 0.0
+    assert meter(100, now=1.0) == 100.0
+    assert meter(101, now=1.1) == 100.0  # 0.1 s is too short a window to mean anything
+    assert meter(151, now=2.0) == 50.0
