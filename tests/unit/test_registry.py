@@ -32,4 +32,4 @@ def test_rate_meter_measures_over_windows_and_keeps_the_rate_on_a_short_one():
     assert meter(0, now=0.0) == 0.0
     assert meter(100, now=1.0) == 100.0
     assert meter(101, now=1.1) == 100.0  # 0.1 s is too short a window to mean anything
-    assert meter(151, now=2.0) == 50.0
+    assert meter(150, now=2.0) == 50.0  # measured from the last full window (t=1, 100)
