@@ -8,7 +8,9 @@ metrics and telemetry, checkpoint. Ends when the frame budget is reached or on S
 from __future__ import annotations
 
 import logging
+import os
 import signal
+import socket
 import time
 
 import msgpack
@@ -187,10 +189,15 @@ class LearnerRole:
         self.weights_version = self.core.updates
         self.weights.send(codec.encode_weights(self.weights_version, self.core.dqn.weights_numpy()))
 
+    def _own_row(self) -> dict:
+        return {"role": "learner", "id": 0, "host": socket.gethostname(), "pid": os.getpid(), "state": "alive",
+                "heartbeat_age_s": 0.0, "frames_per_s": None, "weights_lag": 0,
+                "restarts": int(os.environ.get("HIGHER_RESTARTS", "0")), "rejected": self.rejects.total}
+
     def record(self) -> dict:
         elapsed = time.time() - self.started
         r = self.core.metrics()
-        roles = self.registry.table(self.weights_version)
+        roles = [self._own_row()] + self.registry.table(self.weights_version)
         relabeler = next((i.stats for i in self.registry.roles.values() if i.role == "relabeler"), {})
         actor_fps = [row["frames_per_s"] or 0.0 for row in roles if row["role"] == "actor" and row["state"] == "alive"]
         lags = [row["weights_lag"] for row in roles if row["role"] == "actor" and row["weights_lag"] is not None]

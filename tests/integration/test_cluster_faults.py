@@ -154,7 +154,7 @@ def _send_all(sock: zmq.Socket, messages: list[list[bytes]]) -> None:
 def test_garbage_is_counted_and_dropped_and_learning_goes_on(cluster):
     before = cluster.records()[-1]
     assert before["learner_rejected"] == 0 and before["rejected_messages"] == 0
-    pids = {(role, i): _alive_pid(before, role, i) for role, i in (("actor", 0), ("actor", 1), ("relabeler", 0))}
+    pids = {(role, i): _alive_pid(before, role, i) for role, i in (("learner", 0), ("actor", 0), ("actor", 1), ("relabeler", 0))}
     learner = learner_pid(cluster.launcher)
     assert learner is not None
 

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.slow
 
 BUDGET = 4000  # env frames: about 15-25 s of acting here, past the generator's gate and the first relabels
 RUN_TIMEOUT_S = 150.0
-ROLES = {("actor", 0), ("actor", 1), ("relabeler", 0)}
+ROLES = {("learner", 0), ("actor", 0), ("actor", 1), ("relabeler", 0)}
 
 
 @dataclass
