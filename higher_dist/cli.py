@@ -42,12 +42,14 @@ def add_config_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="learner device: cpu or cuda[:N]")
     p.add_argument("--threads", type=_positive_int, default=1, help="torch threads per process")
+    p.add_argument("--tensorboard", action="store_true", help="also write TensorBoard event files")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="override any config field, e.g. --set dqn.lr=0.001 (repeatable)")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
-    overrides: dict[str, Any] = {"seed": args.seed, "device": args.device, "torch_threads": args.threads}
+    overrides: dict[str, Any] = {"seed": args.seed, "device": args.device, "torch_threads": args.threads,
+                                 "tensorboard": args.tensorboard}
     for name in ("actors", "envs_per_actor", "frames"):
         if getattr(args, name, None) is not None:
             overrides[name] = getattr(args, name)
@@ -211,7 +213,7 @@ def run_main(argv: list[str] | None = None) -> int:
 
         cfg = config_from_args(args)
         torch.set_num_threads(cfg.torch_threads)
-        rd = RunDir(args.run_dir)
+        rd = RunDir(args.run_dir, tensorboard=cfg.tensorboard)
         rd.write_config(cfg)
 
         def log(record: dict) -> None:

@@ -143,6 +143,7 @@ class Config:
     weights_every: int = 20  # learner updates between weight publications
     stats_every_s: float = 2.0
     checkpoint_every_s: float = 120.0
+    tensorboard: bool = False  # also write metrics as TensorBoard event files (needs the tensorboard extra)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

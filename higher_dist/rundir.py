@@ -21,9 +21,17 @@ _ND = "__ndarray__"
 
 
 class RunDir:
-    def __init__(self, path: str | os.PathLike):
+    def __init__(self, path: str | os.PathLike, tensorboard: bool = False):
         self.path = Path(path)
         self.path.mkdir(parents=True, exist_ok=True)
+        self._tb = None
+        if tensorboard:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+            except ImportError as e:
+                raise ValueError("tensorboard: the tensorboard package is not installed "
+                                 "(pip install 'higher-dist[tensorboard]')") from e
+            self._tb = SummaryWriter(str(self.path / "tensorboard"))
 
     @property
     def metrics_path(self) -> Path:
@@ -40,6 +48,13 @@ class RunDir:
         record = {"time": round(time.time(), 3), **record}
         with open(self.metrics_path, "a") as f:
             f.write(json.dumps(record, default=_json_default) + "\n")
+        if self._tb is not None:
+            # Every number of the record, against env frames, as TensorBoard scalars.
+            step = int(record.get("frames") or 0)
+            for key, value in record.items():
+                if isinstance(value, (int, float)) and not isinstance(value, bool) and key != "time":
+                    self._tb.add_scalar(key, value, step)
+            self._tb.flush()
 
     def read_metrics(self) -> list[dict[str, Any]]:
         return read_metrics(self.metrics_path)

@@ -42,7 +42,7 @@ class LearnerRole:
         torch.set_num_threads(cfg.torch_threads)
         torch.manual_seed(cfg.seed)
         self.cfg, self.endpoints = cfg, endpoints
-        self.rd = RunDir(run_dir)
+        self.rd = RunDir(run_dir, tensorboard=cfg.tensorboard)
         self.core = LearnerCore(cfg)
         self.registry = RoleRegistry()
         self.rejects = sockets.RejectCounter()
