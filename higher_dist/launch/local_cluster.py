@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from higher_dist.config import Config
-from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints
+from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, check_free
 from higher_dist.rundir import RunDir, read_metrics
 
 GRACE_S = 20.0  # time each role gets to checkpoint and exit after SIGTERM
@@ -168,6 +168,7 @@ def run_local_cluster(cfg: Config, run_dir: str, resume: bool = False, dashboard
     if resume and rd.load_checkpoint("learner") is None:
         raise ValueError(f"--resume: no learner checkpoint in {rd.path}")
     endpoints = Endpoints.from_base(host, port_base or DEFAULT_BASE_PORT)
+    check_free(endpoints)
     dashboard = dashboard and sys.stdout.isatty()
     sup = Supervisor(build_roles(cfg, rd, endpoints, resume, dashboard, keys), max_restarts, rd, quiet=dashboard)
     stop_requested = []

@@ -95,3 +95,18 @@ def free_base_port(host: str = DEFAULT_HOST, span: int = 5, tries: int = 200) ->
             for s in socks:
                 s.close()
     raise RuntimeError("no free port range found")
+
+
+def check_free(endpoints: "Endpoints", bind_host: str | None = None) -> None:
+    """Refuse, with a message that says what to do, to start on ports that something already holds."""
+    for name, endpoint in endpoints.as_dict().items():
+        host, port = parse_endpoint(endpoint)
+        s = socket.socket()
+        try:
+            s.bind((bind_host or host, port))
+        except OSError as e:
+            raise ValueError(f"{name} port {port} on {bind_host or host} is in use ({e.strerror}): is another "
+                             f"cluster running? Stop it or pick other ports with --port-base") from None
+        finally:
+            s.close()
+

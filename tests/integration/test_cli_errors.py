@@ -111,3 +111,23 @@ def test_plot_of_an_empty_directory_is_refused(tmp_path):
     assert str(empty) in p.stderr and "no run" in p.stderr, p.stderr
     assert "Traceback" not in p.stderr
     assert not list(tmp_path.rglob("*.png")), "no figure for a directory without a run"
+
+
+def test_cluster_refuses_ports_already_in_use(tmp_path, capsys):
+    import socket as pysocket
+
+    from higher_dist.cli import cluster_main
+    from higher_dist.launch.topology import free_base_port
+
+    base = free_base_port()
+    held = pysocket.socket()
+    held.bind(("127.0.0.1", base + 2))  # the weights port
+    try:
+        rc = cluster_main(["--world", "small", "--no-dashboard", "--run-dir", str(tmp_path / "run"),
+                           "--port-base", str(base)])
+    finally:
+        held.close()
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert f"weights port {base + 2}" in err and "--port-base" in err, err
+    assert not (tmp_path / "run" / "logs").exists()  # nothing was started
