@@ -8,7 +8,6 @@ waits rather than queueing without bound. Actor 0 also runs the periodic greedy 
 from __future__ import annotations
 
 import logging
-import signal
 import time
 
 import numpy as np
@@ -19,7 +18,7 @@ from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, act, evaluate
 from higher_dist.learning.episode import SUCCESS
 from higher_dist.learning.exploration import actor_epsilons
-from higher_dist.roles.client import ControlClient, Refused
+from higher_dist.roles.client import start_role
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.episodes import pack_episodes
 
@@ -29,20 +28,8 @@ WAIT_MS = 20  # longest wait for room on the episodes socket before looking at c
 
 
 def run_actor(learner: str, actor_id: int | None = None, keys: str | None = None, threads: int | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    stop = []
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, lambda *_: stop.append(1))
-    client = ControlClient(learner, "actor", actor_id, keys)
-    try:
-        cfg, endpoints = client.join(should_stop=lambda: bool(stop))
-    except Refused as e:
-        log.error("the learner refused this actor: %s", e)
-        return 2
-    except KeyboardInterrupt:
-        return 0
+    client, cfg, endpoints, stop = start_role(learner, "actor", actor_id, keys, threads)
     idx = client.index
-    torch.set_num_threads(threads or cfg.torch_threads)
     torch.manual_seed(cfg.seed + idx)
     ctx = zmq.Context.instance()
     weights_sub = sockets.make_socket(ctx, zmq.SUB, connect=endpoints["weights"], conflate=True, curve=client.curve)

@@ -6,12 +6,15 @@ up the same DEALER socket; a `stop` coming down it ends the role.
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
+import signal
 import socket
 import time
 from typing import Any
 
+import torch
 import zmq
 
 from higher_dist.config import Config, from_dict
@@ -111,3 +114,25 @@ class ControlClient:
     def close(self) -> None:
         self.heartbeat({}, state="stopping")
         self.sock.close(linger=200)
+
+
+def start_role(learner: str, role: str, index: int | None, keys: str | None,
+               threads: int | None) -> tuple[ControlClient, Config, dict[str, str], list]:
+    """What every non-head role does first: logging, stop on SIGINT/SIGTERM, join the learner, set
+    torch's threads. Returns (client, config, endpoints, stop flag). A refusal ends the process with
+    exit code 2 and the learner's reason; a signal while waiting for the welcome ends it with 0."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    stop: list = []
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, lambda *_: stop.append(1))
+    client = ControlClient(learner, role, index, keys)
+    try:
+        cfg, endpoints = client.join(should_stop=lambda: bool(stop))
+    except Refused as e:
+        logging.getLogger(f"higher.{role}").error("the learner refused this %s: %s", role, e)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        raise SystemExit(0) from None
+    torch.set_num_threads(threads or cfg.torch_threads)
+    return client, cfg, endpoints, stop
+

@@ -9,16 +9,14 @@ in turn pushes back on the actors. Its generator and dataset are checkpointed an
 from __future__ import annotations
 
 import logging
-import signal
 import time
 from pathlib import Path
 
-import torch
 import zmq
 
 from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM, bind_address
 from higher_dist.learning.relabel import make_relabeler
-from higher_dist.roles.client import ControlClient, Refused
+from higher_dist.roles.client import start_role
 from higher_dist.rundir import RunDir
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.security import CurveServer
@@ -34,19 +32,7 @@ IDLE_TRAIN_PER_S = 20.0  # cap on generator steps/s when there is nothing else t
 
 def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = False, bind_host: str | None = None,
                   keys: str | None = None, threads: int | None = None, advertise: str | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    stop = []
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, lambda *_: stop.append(1))
-    client = ControlClient(learner, "relabeler", 0, keys)
-    try:
-        cfg, endpoints = client.join(should_stop=lambda: bool(stop))
-    except Refused as e:
-        log.error("the learner refused this relabeler: %s", e)
-        return 2
-    except KeyboardInterrupt:
-        return 0
-    torch.set_num_threads(threads or cfg.torch_threads)
+    client, cfg, endpoints, stop = start_role(learner, "relabeler", 0, keys, threads)
     strategy = make_relabeler(cfg, seed=cfg.seed + 1)
     trainable = strategy.name == "learned"  # only the generator has anything to train
     rd = RunDir(state_dir or Path("runs") / "relabeler")
