@@ -47,7 +47,7 @@ class RunDir:
     def append_metrics(self, record: dict[str, Any]) -> None:
         record = {"time": round(time.time(), 3), **record}
         with open(self.metrics_path, "a") as f:
-            f.write(json.dumps(record, default=_json_default) + "\n")
+            f.write(json.dumps(record, default=plain_number) + "\n")
         if self._tb is not None:
             # Every number of the record, against env frames, as TensorBoard scalars.
             step = int(record.get("frames") or 0)
@@ -99,7 +99,8 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     os.replace(tmp, path)
 
 
-def _json_default(x: Any) -> Any:
+def plain_number(x: Any) -> Any:
+    """`default=` for json/msgpack: numpy scalars as Python numbers."""
     if isinstance(x, np.generic):
         return x.item()
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")

@@ -113,3 +113,11 @@ def evaluate(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, episodes
         for ep in act(collector, q_fn, zero, rng):
             results.append(int(ep.outcome == 0))
     return float(np.mean(results[:episodes]))
+
+
+def evaluate_goal_sets(q_fn: QFunction, cfg, seed: int) -> dict[str, float]:
+    """The periodic evaluation of a run (`cfg`: Config): greedy success on training and held-out goals."""
+    k, n = cfg.network.frame_stack, cfg.eval.episodes
+    return {"success_rate_eval_train": evaluate(q_fn, cfg.world, k, n, "train", seed),
+            "success_rate_eval_heldout": evaluate(q_fn, cfg.world, k, n, "heldout", seed)}
+

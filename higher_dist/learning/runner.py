@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from higher_dist.config import Config
-from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, act, evaluate
+from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, act, evaluate_goal_sets
 from higher_dist.learning.exploration import actor_epsilons
 from higher_dist.learning.learner_core import LearnerCore, relabel_record
 from higher_dist.learning.relabel import make_relabeler
@@ -83,12 +83,7 @@ class SingleProcessRunner:
             self.relabeler.train(self.cfg.generator.train_steps_per_round)
 
     def evaluate(self) -> dict:
-        k, n = self.cfg.network.frame_stack, self.cfg.eval.episodes
-        seed = self.cfg.seed + 10_000 + self.core.updates
-        return {
-            "success_rate_eval_train": evaluate(self.policy, self.cfg.world, k, n, "train", seed),
-            "success_rate_eval_heldout": evaluate(self.policy, self.cfg.world, k, n, "heldout", seed),
-        }
+        return evaluate_goal_sets(self.policy, self.cfg, seed=self.cfg.seed + 10_000 + self.core.updates)
 
     def metrics(self, frames_done: int, elapsed: float) -> dict:
         record = self.core.metrics()

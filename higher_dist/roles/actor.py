@@ -15,7 +15,7 @@ import torch
 import zmq
 
 from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM
-from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, act, evaluate
+from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, act, evaluate_goal_sets
 from higher_dist.learning.episode import SUCCESS
 from higher_dist.learning.exploration import actor_epsilons
 from higher_dist.roles.client import start_role
@@ -83,7 +83,7 @@ def run_actor(learner: str, actor_id: int | None = None, keys: str | None = None
                 buffer, last_send = [], now
             if idx == 0 and frames * cfg.actors >= next_eval and version >= 0:
                 next_eval += cfg.eval.every_frames
-                eval_result = _evaluate(policy, cfg, seed=cfg.seed + 10_000 + frames)
+                eval_result = evaluate_goal_sets(policy, cfg, seed=cfg.seed + 10_000 + frames)
             client.heartbeat({"frames": frames, "weights_version": version})
             if now - last_stats > cfg.stats_every_s:
                 client.stats({"frames": frames, "frames_per_s": round(frames / max(now - t0, 1e-9), 1),
@@ -96,9 +96,3 @@ def run_actor(learner: str, actor_id: int | None = None, keys: str | None = None
         client.close()
     log.info("actor %d stopped after %d frames (%s)", idx, frames, client.stop_reason or "signal")
     return 0
-
-
-def _evaluate(policy, cfg, seed: int) -> dict[str, float]:
-    k, n = cfg.network.frame_stack, cfg.eval.episodes
-    return {"success_rate_eval_train": evaluate(policy, cfg.world, k, n, "train", seed),
-            "success_rate_eval_heldout": evaluate(policy, cfg.world, k, n, "heldout", seed)}

@@ -24,7 +24,7 @@ from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM, Endpo
 from higher_dist.learning.learner_core import LearnerCore, relabel_record
 from higher_dist.roles.client import REJOIN
 from higher_dist.roles.registry import RateMeter, RoleRegistry
-from higher_dist.rundir import RunDir
+from higher_dist.rundir import RunDir, plain_number
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.security import CurveServer, start_authenticator
 from higher_dist.wire.episodes import unpack_episodes
@@ -89,11 +89,8 @@ class LearnerRole:
 
     # -- control ------------------------------------------------------------------------------------
     def _send(self, identity: bytes, msg_type: str, fields: dict) -> None:
-        try:
-            self.control.send_multipart([identity, *codec.encode(msg_type, fields, sender="learner")],
-                                        flags=zmq.NOBLOCK)
-        except zmq.Again:
-            pass  # a peer that does not read its control socket loses this reply; it will ask again
+        # Non-blocking: a peer that does not read its control socket loses this reply; it will ask again.
+        sockets.send_routed(self.control, identity, codec.encode(msg_type, fields, sender="learner"), zmq.NOBLOCK)
 
     def _welcome(self, identity: bytes, index: int) -> None:
         eps = self.endpoints.as_dict()
@@ -105,16 +102,12 @@ class LearnerRole:
         f = msg.fields
         if msg.type == "hello":
             if f["protocol"] != PROTOCOL_VERSION:
-                self._send(identity, "refuse", {
-                    "reason": f"protocol version mismatch: this learner speaks {PROTOCOL_VERSION}, "
-                              f"the {f['role']} speaks {f['protocol']}; run the same higher-dist version",
-                    "protocol": PROTOCOL_VERSION})
+                self._refuse_version_to(identity, f["protocol"])
                 return
             if f["role"] not in ("actor", "relabeler", "dashboard"):
                 self._send(identity, "refuse", {"reason": f"unknown role {f['role']!r}"})
                 return
-            index = f.get("index", -1)
-            index = self.registry.next_index(f["role"]) if index is None or index < 0 else index
+            index = f["index"] if f["index"] >= 0 else self.registry.next_index(f["role"])
             self.registry.hello(f["role"], index, identity, f["host"], f["pid"])
             if f["role"] == "actor" and self.relabeler_endpoint is None:
                 self.pending_hellos.append((identity, index))  # answered once the relabeler registers
@@ -151,10 +144,13 @@ class LearnerRole:
     def _refuse_version(self, err: codec.WireError, identity: bytes | None) -> None:
         """A peer of another protocol version cannot be decoded, but it can be told why."""
         if err.reason == "version" and identity is not None:
-            self._send(identity, "refuse", {
-                "reason": f"protocol version mismatch: this learner speaks {PROTOCOL_VERSION}, the peer "
-                          f"speaks {err.peer_version}; run the same higher-dist version everywhere",
-                "protocol": PROTOCOL_VERSION})
+            self._refuse_version_to(identity, err.peer_version)
+
+    def _refuse_version_to(self, identity: bytes, peer_version) -> None:
+        self._send(identity, "refuse", {
+            "reason": f"protocol version mismatch: this learner speaks {PROTOCOL_VERSION}, the peer "
+                      f"speaks {peer_version}; run the same higher-dist version everywhere",
+            "protocol": PROTOCOL_VERSION})
 
     def poll_control(self, limit: int = 100) -> None:
         for _ in range(limit):
@@ -199,8 +195,11 @@ class LearnerRole:
         r = self.core.metrics()
         roles = [self._own_row()] + self.registry.table(self.weights_version)
         relabeler = next((i.stats for i in self.registry.roles.values() if i.role == "relabeler"), {})
-        actor_fps = [row["frames_per_s"] or 0.0 for row in roles if row["role"] == "actor" and row["state"] == "alive"]
-        lags = [row["weights_lag"] for row in roles if row["role"] == "actor" and row["weights_lag"] is not None]
+        actors = [i for i in self.registry.roles.values() if i.role == "actor"]
+        actor_rows = [row for row in roles if row["role"] == "actor"]
+        actor_fps = [row["frames_per_s"] or 0.0 for row in actor_rows if row["state"] == "alive"]
+        lags = [row["weights_lag"] for row in actor_rows if row["weights_lag"] is not None]
+        eps = [i.stats["epsilon_mean"] for i in actors if i.stats.get("epsilon_mean") is not None]
         r.update({
             "elapsed_s": round(elapsed, 1), "preset": self.cfg.preset, "world": self.cfg.world.name,
             "frames_budget": self.cfg.frames, "weights_version": self.weights_version,
@@ -210,11 +209,9 @@ class LearnerRole:
                                                           for i in self.registry.roles.values()),
             "learner_rejected": self.rejects.total,
             **relabel_record(relabeler), "relabels_per_s": relabeler.get("relabels_per_s"),
+            "epsilon_mean": round(float(np.mean(eps)), 4) if eps else None,
             **self.eval, "roles": roles,
         })
-        eps = [i.stats.get("epsilon_mean") for i in self.registry.roles.values() if i.role == "actor"]
-        eps = [e for e in eps if e is not None]
-        r["epsilon_mean"] = round(float(np.mean(eps)), 4) if eps else None
         return r
 
     # -- loop ---------------------------------------------------------------------------------------
@@ -243,7 +240,7 @@ class LearnerRole:
                 if now - last_tel > TELEMETRY_EVERY_S:
                     last_tel = now
                     record = self.record()
-                    self.telemetry.send(msgpack.packb(record, default=_plain), flags=zmq.NOBLOCK)
+                    self.telemetry.send(msgpack.packb(record, default=plain_number), flags=zmq.NOBLOCK)
                     if now - last_metrics > self.cfg.stats_every_s:
                         last_metrics = now
                         self.rd.append_metrics(record)
@@ -270,12 +267,6 @@ class LearnerRole:
         if self.auth is not None:
             self.auth.stop()
         log.info("learner stopped: %s", self.stop_reason)
-
-
-def _plain(x):
-    if isinstance(x, np.generic):
-        return x.item()
-    raise TypeError(type(x).__name__)
 
 
 def run_learner(cfg: Config, endpoints: Endpoints, run_dir: str, resume: bool = False,
