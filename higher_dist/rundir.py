@@ -10,7 +10,7 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -64,11 +64,7 @@ class RunDir:
 
     def save_checkpoint(self, role: str, state: dict[str, Any]) -> Path:
         path = self.checkpoint_path(role)
-        tmp = path.with_suffix(f".tmp{os.getpid()}")
-        torch.save(_to_tensors(state), tmp)
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        atomic_write(path, lambda tmp: torch.save(_to_tensors(state), tmp), fsync=True)
         return path
 
     def load_checkpoint(self, role: str) -> dict[str, Any] | None:
@@ -93,10 +89,19 @@ def read_metrics(path: str | os.PathLike) -> list[dict[str, Any]]:
     return out
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
+def atomic_write(path: Path, write: Callable[[Path], None], fsync: bool = False) -> None:
+    """`write` fills a temporary file beside `path`, which is then renamed over it: a reader (or a crash)
+    sees the old file or the new one, never half of one."""
     tmp = path.with_suffix(path.suffix + f".tmp{os.getpid()}")
-    tmp.write_bytes(data)
+    write(tmp)
+    if fsync:
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    atomic_write(path, lambda tmp: tmp.write_bytes(data))
 
 
 def plain_number(x: Any) -> Any:

@@ -64,7 +64,6 @@ def measure_cluster(seconds: float, preset: str, world: str, actors: int | None,
     try:
         start = _wait_for(metrics, lambda r: r.get("updates", 0) >= warmup_updates, 600, proc)
         t0 = time.time()
-        lags = []
         while time.time() - t0 < seconds:
             for child in psutil.Process(proc.pid).children(recursive=True):
                 role = _role_of(child)
@@ -73,11 +72,11 @@ def measure_cluster(seconds: float, preset: str, world: str, actors: int | None,
                         peak[role] = max(peak.get(role, 0), child.memory_info().rss)
                     except psutil.NoSuchProcess:
                         pass
-            records = read_metrics(metrics)
-            if records and records[-1].get("weights_lag_mean") is not None:
-                lags.append(records[-1]["weights_lag_mean"])
             time.sleep(0.5)
-        end = read_metrics(metrics)[-1]
+        records = read_metrics(metrics)
+        end = records[-1]
+        lags = [r["weights_lag_mean"] for r in records
+                if r["time"] > start["time"] and r.get("weights_lag_mean") is not None]
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGTERM)

@@ -14,7 +14,7 @@ import torch
 from higher_dist.config import NetworkConfig, WorldConfig
 from higher_dist.learning.episode import Episode
 from higher_dist.learning.exploration import epsilon_greedy
-from higher_dist.learning.networks import QNetwork
+from higher_dist.learning.networks import QNetwork, load_weights_numpy
 from higher_dist.world.grid import BatchedFetchAttr
 from higher_dist.world.language import VOCAB
 
@@ -32,11 +32,11 @@ class EpisodeCollector:
         self._actions = np.zeros((n_envs, t_max), np.uint8)
         self._rewards = np.zeros((n_envs, t_max), np.float32)
         self._t = np.zeros(n_envs, np.int64)
+        self._rows = np.arange(n_envs)
         view, mission = self.world.reset()
-        self.mission = mission.copy()
+        self.mission = mission  # the world never edits arrays it handed out
         self._frames[:, 0] = view
         self.stack = np.repeat(view[:, None], frame_stack, axis=1)
-        self.frames_done = 0
         self.weights_version = 0
 
     def observation(self) -> tuple[np.ndarray, np.ndarray]:
@@ -46,13 +46,12 @@ class EpisodeCollector:
     def step(self, actions: np.ndarray) -> list[Episode]:
         """Step every environment once; return the episodes that finished on this step."""
         res = self.world.step(actions)
-        rows = np.arange(self.n_envs)
+        rows = self._rows
         self._actions[rows, self._t] = actions
         self._rewards[rows, self._t] = res.reward
         self._t += 1
         self._frames[rows, self._t] = res.final_view
-        self.frames_done += self.n_envs
-        done = np.flatnonzero(res.terminated | res.truncated)
+        done = np.flatnonzero(res.done)
         finished = [self._episode(i, res) for i in done]
         # Shift the frame stacks; a fresh episode starts with its first view repeated.
         self.stack[:, :-1] = self.stack[:, 1:]
@@ -61,7 +60,7 @@ class EpisodeCollector:
             self.stack[done] = res.view[done, None]
             self._t[done] = 0
             self._frames[done, 0] = res.view[done]
-        self.mission = res.mission.copy()
+        self.mission = res.mission
         return finished
 
     def _episode(self, i: int, res) -> Episode:
@@ -69,8 +68,8 @@ class EpisodeCollector:
         return Episode(
             frames=self._frames[i, : t + 1].copy(), actions=self._actions[i, :t].copy(),
             rewards=self._rewards[i, :t].copy(), mission=res.mission_done[i].astype(np.int64),
-            outcome=int(res.outcome[i]), picked=res.picked[i].astype(np.int8).copy(),
-            goal=res.goal[i].astype(np.int8).copy(), actor_id=self.actor_id,
+            outcome=int(res.outcome[i]), picked=res.picked[i].astype(np.int8),
+            goal=res.goal[i].astype(np.int8), actor_id=self.actor_id,
             weights_version=self.weights_version,
         )
 
@@ -79,14 +78,11 @@ class TorchQFunction:
     """Batched greedy Q-values from a QNetwork whose weights arrive as numpy arrays (actors, eval)."""
 
     def __init__(self, net_cfg: NetworkConfig, device: str = "cpu"):
-        from higher_dist.learning.dqn import load_weights_numpy
-
-        self._load = load_weights_numpy
         self.device = torch.device(device)
         self.net = QNetwork(net_cfg, vocab_size=len(VOCAB)).to(self.device).eval()
 
     def load(self, arrays: dict[str, np.ndarray]) -> None:
-        self._load(self.net, arrays)
+        load_weights_numpy(self.net, arrays)
 
     @torch.no_grad()
     def __call__(self, obs: np.ndarray, mission: np.ndarray) -> np.ndarray:

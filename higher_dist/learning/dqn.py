@@ -16,8 +16,7 @@ from torch import nn
 from higher_dist.config import DQNConfig, NetworkConfig
 from higher_dist.learning.networks import QNetwork, load_weights_numpy, weights_numpy
 
-# load_weights_numpy / weights_numpy are re-exported: actors import them from here.
-__all__ = ["TransitionBatchLike", "dqn_loss", "DQNLearner", "load_weights_numpy", "weights_numpy"]
+__all__ = ["TransitionBatchLike", "dqn_loss", "DQNLearner"]
 
 
 class TransitionBatchLike(Protocol):

@@ -13,7 +13,7 @@ import numpy as np
 
 from higher_dist.config import ExplorationConfig
 
-__all__ = ["apex_epsilons", "linear_epsilon", "actor_epsilons", "epsilon_greedy"]
+__all__ = ["apex_epsilons", "linear_schedule", "linear_epsilon", "actor_epsilons", "epsilon_greedy"]
 
 
 def apex_epsilons(n: int, eps_base: float, alpha: float) -> np.ndarray:
@@ -25,12 +25,17 @@ def apex_epsilons(n: int, eps_base: float, alpha: float) -> np.ndarray:
     return float(eps_base) ** (1.0 + alpha * np.arange(n, dtype=np.float64) / (n - 1))
 
 
+def linear_schedule(x: float, start: float, end: float, span: float) -> float:
+    """start at x=0, end at x=span and after, linear in between (end at once when span <= 0)."""
+    if span <= 0:
+        return float(end)
+    frac = min(1.0, max(0.0, x / span))
+    return float(start + frac * (end - start))
+
+
 def linear_epsilon(frame: int, cfg: ExplorationConfig) -> float:
     """eps_start at frame 0, eps_end at decay_frames and after, linear in between."""
-    if cfg.decay_frames <= 0:
-        return float(cfg.eps_end)
-    frac = min(1.0, max(0.0, frame / cfg.decay_frames))
-    return float(cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start))
+    return linear_schedule(frame, cfg.eps_start, cfg.eps_end, cfg.decay_frames)
 
 
 def actor_epsilons(cfg: ExplorationConfig, actor_index: int, n_actors: int, n_envs: int,

@@ -3,7 +3,6 @@ at the configured samples-per-insert ratio, and count what it saw. The single-pr
 cluster's learner role both drive this one object."""
 from __future__ import annotations
 
-import time
 from collections import deque
 
 import numpy as np
@@ -28,10 +27,12 @@ class LearnerCore:
         self.frames = 0  # env frames the actors reported (original episodes only)
         self.episodes = 0
         self.relabelled_episodes = 0
-        self.updates = 0
         self.recent_success: deque[int] = deque(maxlen=1000)  # training success over original episodes
         self.last_metrics: dict[str, float] = {}
-        self._update_times: deque[float] = deque(maxlen=200)
+
+    @property
+    def updates(self) -> int:
+        return self.dqn.updates
 
     # -- experience -------------------------------------------------------------------------------
     def add_episodes(self, episodes: list[Episode]) -> None:
@@ -60,8 +61,6 @@ class LearnerCore:
         priorities, metrics = self.dqn.update(batch)
         self.replay.update_priorities(batch.indices, priorities, batch.generations)
         self.limiter.record_sample(batch_size)
-        self.updates += 1
-        self._update_times.append(time.perf_counter())
         self.last_metrics = metrics
         return metrics
 
@@ -105,7 +104,7 @@ class LearnerCore:
         self.dqn.load_state_dict(state["dqn"])
         self.limiter.load_state_dict(state["limiter"])
         c = state["counters"]
-        self.frames, self.episodes, self.updates = c["frames"], c["episodes"], c["updates"]
+        self.frames, self.episodes = c["frames"], c["episodes"]  # updates: restored with the DQN
         self.relabelled_episodes = c["relabelled_episodes"]
         self.recent_success.extend(state.get("recent_success", []))
         if "replay" in state:

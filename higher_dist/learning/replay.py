@@ -28,6 +28,7 @@ import numpy as np
 
 from higher_dist.config import ReplayConfig
 from higher_dist.learning.episode import OUTCOME_NAMES, Episode
+from higher_dist.learning.exploration import linear_schedule
 from higher_dist.learning.sum_tree import SumTree
 
 __all__ = ["PrioritizedReplay", "SumTree", "TransitionBatch", "ORIGINS"]
@@ -286,10 +287,7 @@ class PrioritizedReplay:
     def beta_at(self, frames: int) -> float:
         """Importance-sampling exponent annealed linearly from beta_start to beta_end over beta_frames."""
         c = self.cfg
-        if c.beta_frames <= 0:
-            return float(c.beta_end)
-        frac = min(1.0, max(0.0, frames / c.beta_frames))
-        return float(c.beta_start + frac * (c.beta_end - c.beta_start))
+        return linear_schedule(frames, c.beta_start, c.beta_end, c.beta_frames)
 
     # ------------------------------------------------------------------------------- checkpoint
 

@@ -47,17 +47,11 @@ def run_actor(learner: str, actor_id: int | None = None, keys: str | None = None
     eval_result: dict[str, float] = {}
     try:
         while not stop and not client.poll():
-            # Newest weights, if any, without waiting.
-            try:
-                frame = weights_sub.recv(flags=zmq.NOBLOCK)
-                new_version, arrays = codec.decode_weights(frame, expected)
-                if new_version != version:
-                    policy.load(arrays)
-                    version = collector.weights_version = new_version
-            except zmq.Again:
-                pass
-            except codec.WireError as e:
-                client.rejects.add(e.reason)
+            # Newest weights, if any, without waiting (an invalid frame is counted and dropped).
+            weights = sockets.recv_weights(weights_sub, expected, 0, client.rejects)
+            if weights is not None and weights[0] != version:
+                policy.load(weights[1])
+                version = collector.weights_version = weights[0]
             if pending is not None:
                 # A full socket is the learner holding its replay ratio: wait for room, do not spin.
                 if out.poll(WAIT_MS, zmq.POLLOUT):

@@ -20,6 +20,7 @@ from rich.console import Console
 from rich.live import Live
 
 from higher_dist.roles.dashboard_view import DashboardState, render
+from higher_dist.wire import sockets
 
 MAX_FRAME_BYTES = 8 << 20  # a telemetry record is a few kB; refuse to buffer anything absurd
 
@@ -45,14 +46,8 @@ def decode_record(frame: bytes) -> dict[str, Any] | None:
 
 
 def _subscribe(ctx: zmq.Context, endpoint: str) -> zmq.Socket:
-    sock = ctx.socket(zmq.SUB)
-    # CONFLATE and RCVHWM must be set before connect to take effect.
-    sock.setsockopt(zmq.CONFLATE, 1)
-    sock.setsockopt(zmq.RCVHWM, 4)
-    sock.setsockopt(zmq.LINGER, 0)
-    sock.setsockopt(zmq.SUBSCRIBE, b"")
-    sock.connect(endpoint)
-    return sock
+    # Only the newest record matters: a conflated subscription never queues stale ones.
+    return sockets.make_socket(ctx, zmq.SUB, connect=endpoint, conflate=True, hwm=4, linger_ms=0)
 
 
 def run_dashboard(telemetry_endpoint: str, refresh_per_s: float = 4.0, stop_after_s: float | None = None,
@@ -64,7 +59,7 @@ def run_dashboard(telemetry_endpoint: str, refresh_per_s: float = 4.0, stop_afte
     """
     if refresh_per_s <= 0:
         raise ValueError(f"refresh_per_s must be > 0, got {refresh_per_s}")
-    state = state if state is not None else DashboardState(source=telemetry_endpoint)
+    state = state if state is not None else DashboardState()
     state.source = state.source or telemetry_endpoint
     deadline = None if stop_after_s is None else time.monotonic() + stop_after_s
     poll_ms = max(1, int(1000 / refresh_per_s))

@@ -182,7 +182,12 @@ def decode_weights(frame: Any, expected: Mapping[str, Sequence[int]] | None = No
 
     The arrays are writable copies (a network loads them anyway, and torch warns on read-only buffers).
     """
-    msg = decode([frame])
+    return weights_of(decode([frame]), expected)
+
+
+def weights_of(msg: Message, expected: Mapping[str, Sequence[int]] | None = None
+               ) -> tuple[int, dict[str, np.ndarray]]:
+    """(version, writable copies of the arrays) of a decoded weights message; WireError otherwise."""
     if msg.type != "weights":
         raise WireError("unknown_type", "expected weights, got %s" % msg.type)
     check_weight_shapes(msg.arrays, expected)

@@ -154,9 +154,6 @@ class MessageSpec:
     # frame it received, so a multipart message would reach it torn.
     one_frame: bool = False
 
-    def field(self, name: str) -> Field | None:
-        return next((f for f in self.fields if f.name == name), None)
-
     def array(self, name: str) -> Array | None:
         return next((a for a in self.arrays if a.name == name), None)
 

@@ -12,7 +12,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence
 
 import zmq
 
-from higher_dist.wire.codec import Message, WireError, check_weight_shapes, decode
+from higher_dist.wire.codec import Message, WireError, decode, weights_of
 from higher_dist.wire.schema import MAX_FRAME_BYTES
 
 log = logging.getLogger("higher_dist.wire")
@@ -202,13 +202,8 @@ def recv_weights(socket: zmq.Socket, expected: Mapping[str, Sequence[int]] | Non
     msg = recv_message(socket, timeout_ms, counter, where)
     if msg is None:
         return None
-    counter = counter or REJECTS
-    if msg.type != "weights":
-        counter.add("unknown_type", f"expected weights, got {msg.type}", where)
-        return None
     try:
-        check_weight_shapes(msg.arrays, expected)
+        return weights_of(msg, expected)
     except WireError as exc:
-        counter.add(exc.reason, exc.detail, where)
+        (counter or REJECTS).add(exc.reason, exc.detail, where)
         return None
-    return msg.fields["version"], {name: arr.copy() for name, arr in msg.arrays.items()}
