@@ -35,11 +35,11 @@ def random_success(world: str, envs: int = 2000, seed: int = 0) -> float:
     return float(np.mean(outcome == 0))
 
 
-def fmt(stats: dict | None, key_note: str = "") -> str:
+def fmt(stats: dict | None) -> str:
     if not stats:
         return "not measured"
     return (f"{100 * stats['mean']:.1f}% +- {100 * stats['std']:.1f} ({stats['n']} seed{'s' * (stats['n'] != 1)}, "
-            f"{stats['frames']:,} frames{key_note})")
+            f"{stats['frames']:,} frames{stats.get('note', '')})")
 
 
 def _stats(groups: dict[str, Group], variant: str, key: str = EVAL_TRAIN) -> dict | None:
@@ -61,7 +61,7 @@ def _budget_note(stats_list: list[dict | None]) -> str:
     seeds = min(s["n"] for s in present)
     notes = []
     if frames < 0.9 * PAPER_FRAMES:
-        notes.append(f"measured at {frames:,} frames, {100 * frames / PAPER_FRAMES:.0f}% of the paper's {PAPER_FRAMES:,}: "
+        notes.append(f"measured at {frames:,} frames, {100 * frames / PAPER_FRAMES:.2g}% of the paper's {PAPER_FRAMES:,}: "
                      "curves still rising there are not the paper's end points")
     if seeds < PAPER_SEEDS:
         notes.append(f"{seeds} seed(s) against the paper's {PAPER_SEEDS}")

@@ -93,7 +93,7 @@ class Executor:
             shutil.rmtree(path)  # started but never checkpointed: nothing to keep
         path.mkdir(parents=True, exist_ok=True)
         (path / "logs").mkdir(exist_ok=True)
-        resumed_from = 0
+        resumed_from, resume = 0, False
         if run.kind == "generator":
             argv = generator_argv(run, path)
         else:
@@ -103,7 +103,7 @@ class Executor:
             argv = cluster_argv(run, path, free_base_port(), resume)
         with open(path / "logs" / "reproduce.log", "ab") as log:
             proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-        verb = f"resumed at {resumed_from} frames" if resumed_from else ("restarted" if state == "stale" else "started")
+        verb = f"resumed at {resumed_from} frames" if resume else ("restarted" if state == "stale" else "started")
         self.view.event(f"{run.name}: {verb}")
         return Job(run, path, proc, time.time(), resumed_from)
 

@@ -201,7 +201,7 @@ def _eval_every(world: str, frames: int) -> int | None:
     from higher_dist.config import make_config
 
     default = make_config("dqn", world).eval.every_frames
-    wanted = max(1000, frames // EVALS_PER_RUN)
+    wanted = max(500, frames // EVALS_PER_RUN)
     return wanted if wanted < default else None
 
 
