@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from higher_dist.config import COLORS, SHADES, SIZES, TYPES, ConfigError, from_dict
-from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
+from higher_dist.learning.episode import Episode
+from higher_dist.world.spec import SUCCESS, TIMEOUT, WRONG_PICK
 from higher_dist.world.grid import DIRECTION_VECTORS, KIND_BALL, KIND_KEY, KIND_WALL, cell_attrs
 from higher_dist.world.language import decode, describe, parse
 
@@ -107,7 +108,7 @@ def draw_frame(shot: Snapshot, view_size: int, lines: list[str], cell: int = 24)
 
 
 def load_policy(run_dir: Path):
-    from higher_dist.learning.acting import TorchQFunction
+    from higher_dist.learning.agent import AgentBuilder
     from higher_dist.rundir import RunDir
 
     try:
@@ -117,22 +118,23 @@ def load_policy(run_dir: Path):
     state = RunDir(run_dir).load_checkpoint("learner")
     if state is None:
         raise ConfigError(f"{run_dir}: no learner.ckpt to watch (has the run written a checkpoint yet?)")
-    policy = TorchQFunction(cfg.network)
+    policy = AgentBuilder(cfg).policy()
     policy.net.load_state_dict(state["core"]["dqn"]["online"])
     return cfg, policy, int(state["core"]["counters"]["frames"])
 
 
 def load_relabeller(cfg, run_dir: Path):
     """(strategy, note): the run's relabel strategy, the generator loaded from relabeler.ckpt."""
-    from higher_dist.learning.relabel import make_relabeler
+    from higher_dist.learning.agent import AgentBuilder
     from higher_dist.rundir import RunDir
 
-    strategy = make_relabeler(cfg, seed=cfg.seed + 1)
+    strategy = AgentBuilder(cfg).relabeler()
     if strategy.name != "learned":
         return strategy, ""
     state = RunDir(run_dir).load_checkpoint("relabeler")
     if state is None:
         return strategy, "no relabeler.ckpt: untrained generator"
+    state.pop("pace", None)  # the relabeler service's own pacing, not the strategy's
     strategy.load_state_dict(state)
     gate = "open" if strategy.trainer.gate_open else "closed"
     return strategy, f"gate {gate}, {len(strategy.trainer.dataset)} pairs"

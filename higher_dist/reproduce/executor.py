@@ -23,6 +23,7 @@ from pathlib import Path
 
 import psutil
 
+from higher_dist import metrics as m
 from higher_dist.launch.topology import free_base_port
 from higher_dist.reproduce.plan import GENERATOR_EVAL_PAIRS, Plan, RunSpec
 from higher_dist.reproduce.status import frames_done, human_seconds, last_record, run_state
@@ -174,8 +175,8 @@ class Executor:
             state = "running" if job else self.finished.get(run.name, run_state(run, path))
             record = last_record(path) if run.kind == "cluster" and path.exists() else {}
             rows.append({"name": run.name, "state": state, "done": min(done, total), "total": total,
-                         "fps": job.fps() if job else None, "eval": record.get("success_rate_eval_train"),
-                         "heldout": record.get("success_rate_eval_heldout")})
+                         "fps": job.fps() if job else None, "eval": record.get(m.SUCCESS_EVAL_TRAIN),
+                         "heldout": record.get(m.SUCCESS_EVAL_HELDOUT)})
         self.view.update(rows, self.eta(rows))
 
     def eta(self, rows: list[dict]) -> float | None:

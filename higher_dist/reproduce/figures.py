@@ -16,7 +16,9 @@ import numpy as np
 from higher_dist.plot import REPLAY_KEYS, GRID_POINTS, NoRun, Run, _num, _pyplot, load_run, replay_fractions
 from higher_dist.reproduce.plan import GENERATOR_PAIRS, NOISE_LEVELS, TRIGGER_PAIRS, Plan
 
-EVAL_TRAIN, EVAL_HELDOUT = "success_rate_eval_train", "success_rate_eval_heldout"
+from higher_dist import metrics as m
+
+EVAL_TRAIN, EVAL_HELDOUT = m.SUCCESS_EVAL_TRAIN, m.SUCCESS_EVAL_HELDOUT
 MAIN_VARIANTS = ("dqn", "her", "higher", "reward")
 DPI, SIZE = 80, (6.0, 4.0)
 
@@ -29,7 +31,7 @@ class Group:
 
     def key(self, wanted: str) -> str:
         """`wanted` when a run has it, else the training success (a run too short to be evaluated)."""
-        return wanted if any(r.has(wanted) for r in self.runs) else "success_rate_train"
+        return wanted if any(r.has(wanted) for r in self.runs) else m.SUCCESS_TRAIN
 
 
 def load_groups(plan: Plan) -> dict[str, Group]:
@@ -135,10 +137,10 @@ def draw_all(plan: Plan) -> dict[str, Path]:
         else:
             _pyplot().close(fig)
     generator_groups = [g for g in groups.values() if g.variant.startswith("higher")
-                        and any(r.has("generator_val_accuracy") for r in g.runs)]
+                        and any(r.has(m.GENERATOR_VAL_ACCURACY) for r in g.runs)]
     if generator_groups:
         fig, ax = _figure("HIGhER's generator: validation exact match", "environment frames", "exact match")
-        _curves(ax, generator_groups, "generator_val_accuracy")
+        _curves(ax, generator_groups, m.GENERATOR_VAL_ACCURACY)
         written["generator_accuracy"] = _save(fig, ax, out / "generator_accuracy.png")
     if main:
         written["replay_composition"] = replay_figure(main, out / "replay_composition.png")

@@ -12,7 +12,7 @@ import pytest
 from hd_harness import start_cluster
 from higher_dist import render
 from higher_dist.learning.acting import EpisodeCollector
-from higher_dist.learning.episode import WRONG_PICK
+from higher_dist.world.spec import WRONG_PICK
 
 pytestmark = pytest.mark.slow
 
