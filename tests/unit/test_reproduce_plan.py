@@ -118,3 +118,23 @@ def test_fallback_rate_names_its_source(tmp_path):
 def test_random_policy_success_is_measured_one_episode_per_env():
     rate = random_success("small", envs=500)
     assert 0.02 < rate < 0.5
+
+
+def test_higher_plot_on_a_plan_folder_draws_the_plans_figures_and_table(tmp_path):
+    from higher_dist.plot import main as plot_main
+
+    plan = build(tmp_path, ("main",), seeds=2, methods=["dqn"], frames=1000)
+    plan_mod.merge_and_write(plan)
+    for seed, level in ((0, 0.2), (1, 0.4)):
+        path = plan.path(plan.runs[seed])
+        path.mkdir(parents=True)
+        (path / "config.json").write_text(json.dumps({"preset": "dqn", "seed": seed, "world": {"name": "small"}}))
+        rows = [{"time": t, "frames": 100 * t, "success_rate_train": 0.1, "success_rate_eval_train": level * t / 10,
+                 "success_rate_eval_heldout": level / 2, "replay_success": 10, "replay_timeout": 90 + t}
+                for t in range(1, 11)]
+        (path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert plot_main([str(plan.out)]) == 0
+    assert (plan.out / "figures" / "success_train.png").stat().st_size > 5_000
+    results = (plan.out / "results.md").read_text()
+    # The latest evaluations are 0.2 and 0.4: mean 30.0%, std 10.0 over the two seeds.
+    assert "| DQN | 30.0% +- 10.0 (2 seeds, 1,000 frames) | 15.0% +- 5.0 (2 seeds, 1,000 frames) |" in results
