@@ -138,3 +138,20 @@ def test_higher_plot_on_a_plan_folder_draws_the_plans_figures_and_table(tmp_path
     results = (plan.out / "results.md").read_text()
     # The latest evaluations are 0.2 and 0.4: mean 30.0%, std 10.0 over the two seeds.
     assert "| DQN | 30.0% +- 10.0 (2 seeds, 1,000 frames) | 15.0% +- 5.0 (2 seeds, 1,000 frames) |" in results
+
+
+def test_a_generator_run_writes_its_exact_match_and_the_figure_draws_it(tmp_path):
+    from higher_dist.reproduce import gen_task
+    from higher_dist.reproduce.figures import draw_all
+
+    plan = build(tmp_path, ("generator",), seeds=1, methods=["gen-pairs1000"], generator_steps=20)
+    plan_mod.merge_and_write(plan)
+    run = plan.runs[0]
+    assert run_state(run, plan.path(run)) == "pending"
+    # The executor's argv, run in this process: 200 pairs instead of 1000 keep it quick.
+    assert gen_task.main(["--pairs", "200", "--steps", str(run.steps), "--seed", "0", "--world", "small",
+                          "--eval-pairs", "64", "--out", str(plan.path(run)), "--", *run.flags]) == 0
+    result = json.loads((plan.path(run) / "result.json").read_text())
+    assert result["pairs"] == 200 and 0.0 <= result["seen_exact_match"] <= 1.0 and 0.0 <= result["unseen_exact_match"] <= 1.0
+    assert run_state(run, plan.path(run)) == "done"
+    assert draw_all(plan_mod.read_plan(plan.out))["generator_pairs"].stat().st_size > 5_000
