@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,8 +31,9 @@ BASE_RGB = {"red": (220, 40, 40), "green": (40, 170, 60), "blue": (50, 90, 230),
             "yellow": (235, 200, 30), "grey": (130, 130, 130)}
 SHADE_MIX = {"very_light": 0.6, "light": 0.3, "neutral": 0.0, "dark": -0.3, "very_dark": -0.55}  # + white, - black
 SIZE_SCALE = {"tiny": 0.35, "small": 0.5, "medium": 0.65, "large": 0.8, "giant": 0.95}
-PANEL_LINES = 4
+PANEL_LINES = 6
 LINE_H = 13
+CHAR_W = 6  # Pillow's default bitmap font
 STEP_MS, END_MS = 140, 1400
 
 
@@ -49,6 +51,7 @@ class Watched:
     frames: list[Snapshot]
     episode: Episode | None = None
     relabel: str = ""
+    goal_set: str = "train"
 
 
 def object_rgb(color: int, shade: int) -> tuple[int, int, int]:
@@ -62,7 +65,7 @@ def draw_frame(shot: Snapshot, view_size: int, lines: list[str], cell: int = 24)
     from PIL import Image, ImageDraw
 
     h, w = shot.room.shape[:2]
-    width = max(w * cell, 300)
+    width = max(w * cell, 320)
     img = Image.new("RGBA", (width, h * cell + PANEL_LINES * LINE_H + 6), (255, 255, 255, 255))
     d = ImageDraw.Draw(img)
     x0 = (width - w * cell) // 2
@@ -102,7 +105,8 @@ def draw_frame(shot: Snapshot, view_size: int, lines: list[str], cell: int = 24)
     back_l = (cx - dc * s + side_c * s * 0.8, cy - dr * s + side_r * s * 0.8)
     back_r = (cx - dc * s - side_c * s * 0.8, cy - dr * s - side_r * s * 0.8)
     d.polygon([tip, back_l, back_r], fill=(20, 20, 20), outline=(255, 255, 255))  # black: objects may be red
-    for i, line in enumerate(lines[:PANEL_LINES]):
+    wrapped = [part for line in lines for part in (textwrap.wrap(line, (width - 8) // CHAR_W) or [""])]
+    for i, line in enumerate(wrapped[:PANEL_LINES]):
         d.text((4, h * cell + 3 + i * LINE_H), line, fill=(0, 0, 0))
     return img.convert("RGB")
 
@@ -161,7 +165,7 @@ def watch(cfg, policy, episodes: int, goal_set: str, seed: int) -> list[Watched]
 
     collector = EpisodeCollector(cfg.world, episodes, cfg.network.frame_stack, seed, goal_set=goal_set)
     world = collector.world
-    out = [Watched(decode(collector.mission[i]), []) for i in range(episodes)]
+    out = [Watched(decode(collector.mission[i]), [], goal_set=goal_set) for i in range(episodes)]
     running = np.ones(episodes, bool)
     step = 0
     while running.any():
@@ -196,7 +200,9 @@ def frames_of(watched: list[Watched], view_size: int, cell: int, label: str, fir
     for k, w in enumerate(watched, start=first):
         for j, shot in enumerate(w.frames):
             last = j == len(w.frames) - 1
-            lines = [f"{label} | episode {k + 1}/{total or len(watched)} | step {shot.step}", f"mission: {w.mission}",
+            goals = "held-out goal" if w.goal_set == "heldout" else "training goal"
+            lines = [f"{label} | episode {k + 1}/{total or len(watched)} ({goals}) | step {shot.step}",
+                     f"mission: {w.mission}",
                      outcome_text(w.episode) if last and w.episode is not None else "", w.relabel if last else ""]
             out.append((draw_frame(shot, view_size, lines, cell), END_MS if last else STEP_MS))
     return out
@@ -234,7 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("run_dir", metavar="RUN_DIR")
     p.add_argument("--episodes", type=int, default=4)
     p.add_argument("--out", default="episodes.gif", help="FILE.gif (animation) or FILE.png (a strip of frames)")
-    p.add_argument("--goal-set", choices=("train", "heldout"), default="train")
+    p.add_argument("--goal-set", choices=("train", "heldout", "both"), default="train",
+                   help="goals of the episodes: training, held-out, or both (alternating)")
     p.add_argument("--seed", type=int, default=0, help="seed of the episodes' layouts")
     p.add_argument("--cell", type=int, default=24, help="pixels per grid cell")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
@@ -253,7 +260,12 @@ def main(argv: list[str] | None = None) -> int:
         strategy, note = load_relabeller(cfg, run_dir)
     except ConfigError as e:
         return _die(str(e))
-    watched = watch(cfg, policy, args.episodes, args.goal_set, args.seed)
+    if args.goal_set == "both":
+        train = watch(cfg, policy, (args.episodes + 1) // 2, "train", args.seed)
+        heldout = watch(cfg, policy, args.episodes // 2, "heldout", args.seed)
+        watched = [w for pair in zip(train, heldout + [None]) for w in pair if w is not None][:args.episodes]
+    else:
+        watched = watch(cfg, policy, args.episodes, args.goal_set, args.seed)
     rng = np.random.default_rng(args.seed)
     for w in watched:
         w.relabel = relabel_text(strategy, note, w.episode, rng)

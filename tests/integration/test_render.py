@@ -37,7 +37,7 @@ def test_gif_and_strip_of_greedy_episodes(run_dir, tmp_path):
     gif, strip = tmp_path / "episodes.gif", tmp_path / "episodes.png"
     for out in (gif, strip):
         proc = subprocess.run([sys.executable, "-c", "import sys; from higher_dist.cli import render_main as m; "
-                               "sys.exit(m())", str(run_dir), "--episodes", "3", "--out", str(out)],
+                               "sys.exit(m())", str(run_dir), "--episodes", "3", "--goal-set", "both", "--out", str(out)],
                               capture_output=True, text=True, timeout=120)
         assert proc.returncode == 0, proc.stdout + proc.stderr
         assert "3 episodes" in proc.stdout
