@@ -80,6 +80,7 @@ def _main(args: argparse.Namespace, argv: list[str]) -> int:
     if args.dry_run:
         print_plan(plan, spis, parallel)
         return 0
+    _lock(out)
     recorded = plan_mod.merge_and_write(plan)
     from higher_dist.reproduce.executor import Executor
     from higher_dist.reproduce.view import make_view
@@ -94,6 +95,22 @@ def _main(args: argparse.Namespace, argv: list[str]) -> int:
     if not args.no_report:
         report(out)
     return code
+
+
+def _lock(out: Path) -> None:
+    """One higher-reproduce per folder: a second one would start the same runs twice."""
+    import psutil
+
+    lock = out / "reproduce.pid"
+    try:
+        pid = int(lock.read_text())
+        other = psutil.Process(pid)
+        if pid != os.getpid() and "reproduce" in " ".join(other.cmdline()):
+            raise ConfigError(f"--out {out}: higher-reproduce (pid {pid}) is already running this plan")
+    except (OSError, ValueError, psutil.Error):
+        pass  # no lock, or its process is gone: the folder is free
+    out.mkdir(parents=True, exist_ok=True)
+    lock.write_text(str(os.getpid()))
 
 
 def print_plan(plan: plan_mod.Plan, spis: dict[str, float], parallel: int) -> None:

@@ -31,6 +31,7 @@ from higher_dist.rundir import atomic_write_bytes, read_metrics
 
 STOP_GRACE_S = 60.0  # a cluster's roles get 20 s each to checkpoint; the supervisor waits for them
 POLL_S = 0.5
+GENERATOR_RUN_S = 60.0  # a generator measurement, for the ETA
 
 
 def cluster_argv(run: RunSpec, run_dir: Path, port_base: int, resume: bool) -> list[str]:
@@ -180,13 +181,16 @@ class Executor:
         self.view.update(rows, self.eta(rows))
 
     def eta(self, rows: list[dict]) -> float | None:
-        """Seconds left: frames left over the frame rate the running runs show (the estimate before)."""
+        """Seconds left: frames left over the frame rate the running runs show (the estimate before
+        any shows one), generator runs at a minute each, shared among the runs that run at once."""
         seen = [j.fps() for j in self.jobs if j.run.kind == "cluster" and j.fps()]
         fps = sum(seen) / len(seen) if seen else self.est_fps
-        left = sum(r["total"] - r["done"] for r in rows
-                   if r["state"] not in ("done", "done (earlier)") and not r["name"].startswith("gen-"))
-        gen_left = sum(1 for r in rows if r["name"].startswith("gen-") and not r["state"].startswith("done"))
-        return (left / fps + gen_left * 60.0) / max(1, min(self.parallel, len(self.jobs) or 1)) if fps else None
+        kinds = {r.name: r.kind for r in self.runs}
+        todo = [r for r in rows if not str(r["state"]).startswith("done")]
+        frames_left = sum(r["total"] - r["done"] for r in todo if kinds[r["name"]] == "cluster")
+        generator_left = sum(1 for r in todo if kinds[r["name"]] == "generator")
+        at_once = max(1, min(self.parallel, len(todo)))
+        return (frames_left / fps + generator_left * GENERATOR_RUN_S) / at_once if fps else None
 
 
 def _kill_tree(pid: int) -> None:
