@@ -104,11 +104,11 @@ def _lock(out: Path) -> None:
     lock = out / "reproduce.pid"
     try:
         pid = int(lock.read_text())
-        other = psutil.Process(pid)
-        if pid != os.getpid() and "reproduce" in " ".join(other.cmdline()):
-            raise ConfigError(f"--out {out}: higher-reproduce (pid {pid}) is already running this plan")
+        running = pid != os.getpid() and "reproduce" in " ".join(psutil.Process(pid).cmdline())
     except (OSError, ValueError, psutil.Error):
-        pass  # no lock, or its process is gone: the folder is free
+        running = False  # no lock, or its process is gone: the folder is free
+    if running:
+        raise ConfigError(f"--out {out}: higher-reproduce (pid {pid}) is already running this plan")
     out.mkdir(parents=True, exist_ok=True)
     lock.write_text(str(os.getpid()))
 

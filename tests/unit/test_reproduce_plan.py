@@ -155,3 +155,21 @@ def test_a_generator_run_writes_its_exact_match_and_the_figure_draws_it(tmp_path
     assert result["pairs"] == 200 and 0.0 <= result["seen_exact_match"] <= 1.0 and 0.0 <= result["unseen_exact_match"] <= 1.0
     assert run_state(run, plan.path(run)) == "done"
     assert draw_all(plan_mod.read_plan(plan.out))["generator_pairs"].stat().st_size > 5_000
+
+
+def test_a_second_reproduce_on_the_same_folder_is_refused(tmp_path):
+    import subprocess
+    import sys
+
+    from higher_dist.reproduce.cli import _lock
+
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)  # higher-reproduce stand-in"])
+    try:
+        (tmp_path / "reproduce.pid").write_text(str(other.pid))
+        with pytest.raises(ConfigError, match=f"pid {other.pid}"):
+            _lock(tmp_path)
+    finally:
+        other.kill()
+        other.wait()
+    _lock(tmp_path)  # its process is gone: the folder is free again, and now ours
+    assert (tmp_path / "reproduce.pid").read_text() == str(__import__("os").getpid())
