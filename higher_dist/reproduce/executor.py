@@ -71,10 +71,11 @@ class Job:
     resumed_from: int
     samples: list[tuple[float, int]] = field(default_factory=list)  # (time, frames) seen by the view
 
-    def fps(self) -> float | None:
+    def fps(self, window: int = 120) -> float | None:
+        """Frames/s over the last `window` samples (a minute at two a second: metrics come in steps)."""
         if len(self.samples) < 2:
             return None
-        (t0, f0), (t1, f1) = self.samples[max(0, len(self.samples) - 20)], self.samples[-1]
+        (t0, f0), (t1, f1) = self.samples[max(0, len(self.samples) - window)], self.samples[-1]
         return (f1 - f0) / (t1 - t0) if t1 > t0 and f1 > f0 else None
 
 
@@ -113,6 +114,9 @@ class Executor:
         state = run_state(job.run, job.path)
         if state == "done":
             self.finished[job.run.name] = "done"
+            if job.run.kind == "cluster" and job.samples:
+                # The next runs' ETA starts from what this one did here, not from the estimate.
+                self.est_fps = max(1.0, (job.samples[-1][1] - job.resumed_from) / max(time.time() - job.started, 1.0))
             self.view.event(f"{job.run.name}: done in {human_seconds(time.time() - job.started)}")
         elif self.stop_signal is not None:
             self.finished[job.run.name] = "stopped"
