@@ -19,6 +19,7 @@ SIZES = ("tiny", "small", "medium", "large", "giant")
 
 PRESETS = ("dqn", "her", "noisy-her", "higher", "reward")
 WORLDS = ("paper", "small")
+RATIO_COUNTS = ("env_frames", "transitions")  # what the samples-per-insert limiter counts as inserts
 
 
 class ConfigError(ValueError):
@@ -80,6 +81,11 @@ class ReplayConfig:
     beta_frames: int = 5_000_000  # frames over which beta anneals to beta_end
     min_size: int = 2_000  # transitions before learning starts
     samples_per_insert: float = 8.0  # replay ratio kept by the rate limiter (as in Reverb)
+    # What one "insert" of that ratio is. "env_frames": frames of original episodes only, so every
+    # method gets the same updates per env frame (the comparison between methods uses this);
+    # "transitions": every stored transition, relabelled copies included (HER and HIGhER then get up
+    # to ~1.4x the updates of DQN per env frame).
+    ratio_counts: str = "env_frames"
     priority_eps: float = 1e-3
     checkpoint_replay: bool = False
 
@@ -313,6 +319,8 @@ def validate(cfg: Config) -> None:
     _check(0 < r.min_size <= r.capacity, f"replay.min_size: must be in (0, capacity={r.capacity}], got {r.min_size}")
     _check(r.alpha >= 0 and 0 <= r.beta_start <= 1 and 0 <= r.beta_end <= 1, "replay: alpha >= 0 and betas in [0, 1]")
     _check(r.samples_per_insert > 0, f"replay.samples_per_insert: must be > 0, got {r.samples_per_insert}")
+    _check(r.ratio_counts in RATIO_COUNTS,
+           f"replay.ratio_counts: must be {' or '.join(RATIO_COUNTS)}, got {r.ratio_counts!r}")
     e = cfg.exploration
     _check(e.kind in ("apex", "linear"), f"exploration.kind: must be apex or linear, got {e.kind!r}")
     _check(0 <= e.eps_base <= 1 and 0 <= e.eps_end <= e.eps_start <= 1, "exploration: epsilons must lie in [0, 1], end <= start")
