@@ -157,6 +157,7 @@ class GeneratorTrainer:
         self.evaluations = 0
         self.val_accuracy = 0.0  # exact match at the last evaluate(); 0 until the first one
         self.last_eval: dict[str, float] = {}
+        self.val_at_pairs = 0  # dataset size (pairs) when val_accuracy was measured
         self.last_loss = float("nan")
 
     def observe_episodes(self, episodes: list[Episode]) -> int:
@@ -201,6 +202,7 @@ class GeneratorTrainer:
         """Accuracy on the validation split; its exact match becomes `val_accuracy` (the gate's input)."""
         result = self.evaluate_pairs(*self.dataset.validation())
         self.val_accuracy = result["exact"]
+        self.val_at_pairs = len(self.dataset)
         self.last_eval = result
         self.evaluations += 1
         return result
@@ -219,7 +221,7 @@ class GeneratorTrainer:
                 "optimizer": copy.deepcopy(self.optimizer.state_dict()),
                 "dataset": self.dataset.state_dict(), "rng": self.rng.bit_generator.state,
                 "steps": self.steps, "evaluations": self.evaluations, "val_accuracy": self.val_accuracy,
-                "last_eval": dict(self.last_eval), "last_loss": self.last_loss}
+                "val_at_pairs": self.val_at_pairs, "last_eval": dict(self.last_eval), "last_loss": self.last_loss}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.model.load_state_dict(state["model"])
@@ -228,5 +230,6 @@ class GeneratorTrainer:
         self.rng.bit_generator.state = state["rng"]
         self.steps, self.evaluations = int(state["steps"]), int(state["evaluations"])
         self.val_accuracy = float(state["val_accuracy"])
+        self.val_at_pairs = int(state.get("val_at_pairs", 0))
         self.last_eval = dict(state["last_eval"])
         self.last_loss = float(state["last_loss"])

@@ -123,7 +123,9 @@ def relabel_record(m: dict) -> dict:
     return {
         "relabel_strategy": m.get("strategy"), "generator_val_accuracy": m.get("val_accuracy"),
         "relabel_dataset_size": m.get("dataset_size"), "relabel_gate_open": m.get("gate_open"),
-        "relabel_accuracy": m.get("relabel_accuracy"), "relabel_unparseable": m.get("unparseable"),
+        "generator_val_at_pairs": m.get("val_at_pairs"),
+        "relabel_accuracy": m.get("relabel_accuracy"), "relabel_accuracy_total": m.get("relabel_accuracy_total"),
+        "relabel_unparseable": m.get("unparseable"),
         "generator_loss": m.get("loss"),
     }
 

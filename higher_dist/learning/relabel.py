@@ -9,11 +9,14 @@ The paper's methods differ only here (DESIGN.md section 1):
 
 Every strategy relabels copies of wrong-pick episodes only: successes already carry their reward,
 time-outs picked nothing (nothing to describe), and relabelled copies are never relabelled again.
-Each relabel is scored against the picked object for the dashboard (`relabel_accuracy`); that score
-is computed after the relabels are made and is never fed back into training.
+Each relabel is scored against the picked object for the dashboard; that score is computed after the
+relabels are made and is never fed back into training. `relabel_accuracy` is over the last
+`RECENT_RELABELS` relabels (a window, so it follows the generator as it improves);
+`relabel_accuracy_total` is since the start of the run.
 """
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -26,6 +29,7 @@ from higher_dist.world.language import VOCAB, expert_tokens, noisy_attrs
 from higher_dist.world.objects import ObjectSpace
 
 STRATEGIES = ("none", "expert", "noisy", "learned")
+RECENT_RELABELS = 1000  # window of the reported relabel accuracy
 
 
 def relabel_candidates(episodes: list[Episode]) -> list[Episode]:
@@ -43,6 +47,7 @@ class RelabelStrategy:
         self.considered = 0  # wrong-pick episodes offered for relabelling
         self.relabelled = 0  # copies returned
         self.correct = 0  # copies whose instruction describes the picked object (metrics only)
+        self.recent_correct: deque[bool] = deque(maxlen=RECENT_RELABELS)
 
     def observe(self, episodes: list[Episode]) -> None:
         """Learn from a batch of finished episodes (only the learned strategy does)."""
@@ -62,7 +67,9 @@ class RelabelStrategy:
         if not originals:
             return
         picked = np.stack([np.asarray(ep.picked, np.int64) for ep in originals])
-        self.correct += int((picked == np.asarray(new_attrs, np.int64)).all(axis=1).sum())
+        right = (picked == np.asarray(new_attrs, np.int64)).all(axis=1)
+        self.correct += int(right.sum())
+        self.recent_correct.extend(right.tolist())
         self.relabelled += len(originals)
 
     def metrics(self) -> dict[str, Any]:
@@ -71,12 +78,15 @@ class RelabelStrategy:
             "considered": self.considered,
             "relabelled": self.relabelled,
             # None until something was relabelled: "no data", not "always wrong".
-            "relabel_accuracy": self.correct / self.relabelled if self.relabelled else None,
+            "relabel_accuracy": (sum(self.recent_correct) / len(self.recent_correct)
+                                 if self.recent_correct else None),
+            "relabel_accuracy_total": self.correct / self.relabelled if self.relabelled else None,
         }
 
     def state_dict(self) -> dict[str, Any]:
         return {"name": self.name, "rng": self.rng.bit_generator.state, "considered": self.considered,
-                "relabelled": self.relabelled, "correct": self.correct}
+                "relabelled": self.relabelled, "correct": self.correct,
+                "recent_correct": list(self.recent_correct)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["name"] != self.name:
@@ -84,6 +94,8 @@ class RelabelStrategy:
         self.rng.bit_generator.state = state["rng"]
         self.considered, self.relabelled, self.correct = (
             int(state["considered"]), int(state["relabelled"]), int(state["correct"]))
+        self.recent_correct.clear()
+        self.recent_correct.extend(bool(x) for x in state.get("recent_correct", []))
 
 
 class ExpertRelabel(RelabelStrategy):
@@ -183,7 +195,10 @@ class LearnedRelabel(RelabelStrategy):
         t = self.trainer
         out.update({
             "unparseable": self.unparseable, "gated_off": self.gated_off, "gate_open": t.gate_open,
-            "dataset_size": len(t.dataset), "val_accuracy": t.val_accuracy, "train_steps": t.steps,
+            "dataset_size": len(t.dataset),
+            # As of the latest evaluation (None before the first), and the dataset size it was measured at.
+            "val_accuracy": t.val_accuracy if t.evaluations else None, "val_at_pairs": t.val_at_pairs,
+            "train_steps": t.steps,
             "loss": None if np.isnan(t.last_loss) else t.last_loss, "evaluations": t.evaluations,
         })
         return out

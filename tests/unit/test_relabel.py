@@ -111,7 +111,7 @@ def test_noisy_expert_changes_each_attribute_at_rate_p_times_one_minus_one_over_
     changed = (described != picked).mean(axis=0)
     expected = np.array([p * (1 - 1 / len(space.values(a))) for a in range(4)])
     assert np.allclose(changed, expected, atol=0.03), (changed, expected)
-    assert strategy.metrics()["relabel_accuracy"] == pytest.approx((described == picked).all(axis=1).mean())
+    assert strategy.metrics()["relabel_accuracy_total"] == pytest.approx((described == picked).all(axis=1).mean())
 
 
 def test_learned_relabels_nothing_while_the_gate_is_closed():
@@ -210,3 +210,44 @@ def test_factory_builds_each_preset_strategy():
     assert noisy.p == 0.2
     learned = make_relabeler(make_config("higher", "small"), seed=0)
     assert learned.cfg.n_min == 100
+
+
+def test_relabel_accuracy_is_over_the_recent_window_and_the_total_is_reported_beside_it():
+    from higher_dist.learning.relabel import RECENT_RELABELS
+    space = ObjectSpace(WorldConfig())
+    rng = np.random.default_rng(2)
+    view = np.zeros((7, 7, 4), np.uint8)
+
+    def batch(n):
+        picked = space.all_objects[rng.integers(len(space.all_objects), size=n)]
+        return [make_episode(view, np.zeros(10, np.int64), WRONG_PICK, a, a) for a in picked]
+
+    strategy = NoisyExpertRelabel(space, 1.0, seed=3)  # every attribute noised: mostly wrong
+    strategy.relabel(batch(1500))
+    early = strategy.metrics()
+    assert early["relabel_accuracy"] < 0.3
+    strategy.p = 0.0  # a relabeller that has become exact
+    strategy.relabel(batch(RECENT_RELABELS))
+    m = strategy.metrics()
+    assert m["relabel_accuracy"] == 1.0  # the window holds only the exact relabels
+    assert m["relabel_accuracy_total"] == pytest.approx(
+        (early["relabel_accuracy_total"] * 1500 + RECENT_RELABELS) / (1500 + RECENT_RELABELS))
+    assert m["relabel_accuracy_total"] < 0.7
+    # The window survives a checkpoint.
+    restored = NoisyExpertRelabel(space, 0.0, seed=3)
+    restored.load_state_dict(strategy.state_dict())
+    assert restored.metrics()["relabel_accuracy"] == 1.0
+
+
+def test_generator_accuracy_is_unknown_before_its_first_evaluation_and_dated_after_it():
+    strategy = LearnedRelabel(GEN, len(VOCAB), seed=0)
+    rng = np.random.default_rng(4)
+    views, missions, goals = make_pairs(FEW_OBJECTS, 200, "train", rng)
+    strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
+    assert strategy.metrics()["val_accuracy"] is None
+    strategy.train(100)  # one round, evaluated (rounds_per_eval=1)
+    size_then = strategy.metrics()["dataset_size"]
+    views, missions, goals = make_pairs(FEW_OBJECTS, 100, "train", rng)
+    strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
+    m = strategy.metrics()
+    assert m["val_accuracy"] is not None and m["val_at_pairs"] == size_then < m["dataset_size"]
