@@ -120,7 +120,7 @@ class GeneratorConfig:
 @dataclass(frozen=True)
 class RelabelConfig:
     strategy: str = "none"  # none | expert | noisy | learned
-    noise_p: float = 0.2  # noisy expert: each attribute resampled with this probability
+    noise_p: float = 0.2  # noisy expert: each attribute swapped to another value with this probability
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@
 The paper's methods differ only here (DESIGN.md section 1):
 - `none`    (DQN, DQN+reward): nothing is relabelled;
 - `expert`  (DQN+HER): the picked object, described from ground truth (the expert reads it by design);
-- `noisy`   (DQN+HER noisy): the same with each attribute resampled with probability p;
+- `noisy`   (DQN+HER noisy): the same with each attribute swapped to another value with probability p;
 - `learned` (DQN+HIGhER): the instruction generator describes the view before the pick; it is trained
   on successful episodes only, and used only once its gate is open.
 
@@ -121,8 +121,8 @@ class ExpertRelabel(RelabelStrategy):
 
 
 class NoisyExpertRelabel(ExpertRelabel):
-    """The expert with each of the 4 attributes resampled, with probability p, among the world's values
-    (so an attribute actually changes with probability p * (1 - 1/n_values))."""
+    """The expert with each of the 4 attributes swapped, with probability p, to another of the world's
+    values (as the paper defines noisy HER: all four stay right with probability (1 - p)^4)."""
 
     name = "noisy"
 
