@@ -125,7 +125,7 @@ def relabel_record(m: dict) -> dict:
         "relabel_dataset_size": m.get("dataset_size"), "relabel_gate_open": m.get("gate_open"),
         "generator_val_at_pairs": m.get("val_at_pairs"),
         "relabel_accuracy": m.get("relabel_accuracy"), "relabel_accuracy_total": m.get("relabel_accuracy_total"),
-        "relabel_unparseable": m.get("unparseable"),
+        "relabel_unparseable": m.get("unparseable"), "relabel_contradicting": m.get("contradicting"),
         "generator_loss": m.get("loss"),
     }
 

@@ -139,7 +139,8 @@ class LearnedRelabel(RelabelStrategy):
 
     It reads `ep.frames` only: never `ep.picked` or `ep.goal` (except `_score`, after the fact).
     While the gate is closed nothing is relabelled; an output that does not parse to an object of
-    the language is dropped and counted as `unparseable`.
+    the language is dropped and counted as `unparseable`, one that names the episode's own (failed)
+    goal is dropped and counted as `contradicting`.
     """
 
     name = "learned"
@@ -151,6 +152,9 @@ class LearnedRelabel(RelabelStrategy):
         self.trainer = GeneratorTrainer(cfg, vocab_size, seed, device=device, view_size=view_size)
         self.unparseable = 0
         self.gated_off = 0  # wrong picks not relabelled because the gate was closed
+        # Relabels naming the very goal the episode failed: the same transitions would be stored with
+        # reward 1 beside the original with reward 0, so they are dropped.
+        self.contradicting = 0
         self._steps_since_eval = 0
 
     def observe(self, episodes: list[Episode]) -> None:
@@ -168,7 +172,10 @@ class LearnedRelabel(RelabelStrategy):
         tokens = self.trainer.generate(views)
         attrs, ok = parse_many(tokens)
         self.unparseable += int((~ok).sum())
-        kept = np.flatnonzero(ok)
+        goals, _ = parse_many(np.stack([ep.mission for ep in candidates]))  # what the agent was told
+        contradicting = ok & (attrs == goals).all(axis=1)
+        self.contradicting += int(contradicting.sum())
+        kept = np.flatnonzero(ok & ~contradicting)
         copies = [candidates[i].relabel(tokens[i]) for i in kept]
         self._score([candidates[i] for i in kept], attrs[kept])
         return copies
@@ -194,7 +201,8 @@ class LearnedRelabel(RelabelStrategy):
         out = super().metrics()
         t = self.trainer
         out.update({
-            "unparseable": self.unparseable, "gated_off": self.gated_off, "gate_open": t.gate_open,
+            "unparseable": self.unparseable, "contradicting": self.contradicting, "gated_off": self.gated_off,
+            "gate_open": t.gate_open,
             "dataset_size": len(t.dataset),
             # As of the latest evaluation (None before the first), and the dataset size it was measured at.
             "val_accuracy": t.val_accuracy if t.evaluations else None, "val_at_pairs": t.val_at_pairs,
@@ -206,6 +214,7 @@ class LearnedRelabel(RelabelStrategy):
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
         state.update({"trainer": self.trainer.state_dict(), "unparseable": self.unparseable,
+                      "contradicting": self.contradicting,
                       "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval})
         return state
 
@@ -213,6 +222,7 @@ class LearnedRelabel(RelabelStrategy):
         super().load_state_dict(state)
         self.trainer.load_state_dict(state["trainer"])
         self.unparseable, self.gated_off = int(state["unparseable"]), int(state["gated_off"])
+        self.contradicting = int(state.get("contradicting", 0))
         self._steps_since_eval = int(state["steps_since_eval"])
 
 
