@@ -51,7 +51,8 @@ class InstructionGenerator(nn.Module):
         self.cfg, self.vocab_size, self.view_size = cfg, int(vocab_size), view_size
         self.front = front_cell(view_size)
         self.encoder = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), in_frames=1, view_size=view_size)
-        self.context = nn.Linear(self.encoder.out_dim + cfg.embed_dim, cfg.hidden)
+        self.shortcut = bool(cfg.front_cell_shortcut)  # off: the paper's generator, conv features only
+        self.context = nn.Linear(self.encoder.out_dim + (cfg.embed_dim if self.shortcut else 0), cfg.hidden)
         self.init_hidden = nn.Linear(cfg.hidden, cfg.hidden)
         self.word_embed = nn.Embedding(vocab_size, cfg.word_embed_dim, padding_idx=PAD)
         # The context is fed at every step as well as through the initial state, so the decoder never
@@ -69,6 +70,8 @@ class InstructionGenerator(nn.Module):
             raise ValueError(f"views: expected (B, {self.view_size}, {self.view_size}, 4), got {tuple(views.shape)}")
         stacked = views[:, None]  # a "stack" of one frame, as the encoder takes
         maps = self.encoder(stacked).flatten(1)
+        if not self.shortcut:
+            return F.relu(self.context(maps))
         r, c = self.front
         # The front cell through the same (shared) embedding, as a 1x1 view.
         cell = self.encoder.embed_views(stacked[:, :, r:r + 1, c:c + 1]).flatten(1)
