@@ -105,6 +105,10 @@ class ExplorationConfig:
     eps_start: float = 1.0  # linear decay (the paper's schedule)
     eps_end: float = 0.05
     decay_frames: int = 1_000_000
+    # apex only: every slot starts at epsilon 1.0 and decays linearly to its rung of the ladder over
+    # this many env frames (0: the ladder from the start). Early random picks feed HER its wrong picks
+    # and HIGhER's generator its first successes, while the greedy rungs take over later.
+    warmup_frames: int = 0
 
 
 @dataclass(frozen=True)
@@ -359,6 +363,7 @@ def validate(cfg: Config) -> None:
     e = cfg.exploration
     _check(e.kind in ("apex", "linear"), f"exploration.kind: must be apex or linear, got {e.kind!r}")
     _check(0 <= e.eps_base <= 1 and 0 <= e.eps_end <= e.eps_start <= 1, "exploration: epsilons must lie in [0, 1], end <= start")
+    _check(e.warmup_frames >= 0, f"exploration.warmup_frames: must be >= 0, got {e.warmup_frames}")
     g = cfg.generator
     _check(0 < g.val_fraction < 1, f"generator.val_fraction: must be in (0, 1), got {g.val_fraction}")
     _check(0 <= g.min_accuracy <= 1, f"generator.min_accuracy: must be in [0, 1], got {g.min_accuracy}")
