@@ -10,7 +10,6 @@ from higher_dist.bench.generator_bench import make_pairs
 from higher_dist.config import ConfigError, WorldConfig, from_dict, make_config
 from higher_dist.learning.generator import GeneratorTrainer, InstructionGenerator
 from higher_dist.rundir import RunDir
-from higher_dist.world.language import VOCAB
 
 
 @pytest.mark.parametrize("preset, decay", [("her", 100_000), ("higher", 400_000), ("dqn", 100_000)])
@@ -49,12 +48,12 @@ def test_the_profile_is_recorded_in_config_json_and_travels_with_the_config(tmp_
 def test_generator_without_the_front_cell_shortcut_reads_conv_features_only():
     torch.manual_seed(0)
     cfg = make_config("higher", "paper", "paper").generator
-    with_cut = InstructionGenerator(make_config("higher", "paper").generator, len(VOCAB))
-    without = InstructionGenerator(cfg, len(VOCAB))
+    with_cut = InstructionGenerator(make_config("higher", "paper").generator)
+    without = InstructionGenerator(cfg)
     assert without.context.in_features == without.encoder.out_dim
     assert with_cut.context.in_features == with_cut.encoder.out_dim + with_cut.cfg.embed_dim
     # It still learns: the loss falls on a few hundred pairs (a check of the path, not of accuracy).
-    trainer = GeneratorTrainer(cfg, len(VOCAB), seed=0)
+    trainer = GeneratorTrainer(cfg, seed=0)
     views, missions, _ = make_pairs(WorldConfig(), 256, "train", np.random.default_rng(0))
     trainer.dataset.add_many(views, missions)
     first = trainer.train_steps(5)
