@@ -1,5 +1,6 @@
 """Profiles: the paper's settings with one switch, recorded in the run's config."""
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -52,9 +53,21 @@ def test_generator_without_the_front_cell_shortcut_reads_conv_features_only():
     without = InstructionGenerator(cfg)
     assert without.context.in_features == without.encoder.out_dim
     assert with_cut.context.in_features == with_cut.encoder.out_dim + with_cut.cfg.embed_dim
-    # It still learns: the loss falls on a few hundred pairs (a check of the path, not of accuracy).
-    trainer = GeneratorTrainer(cfg, seed=0)
+    # It still learns: the loss falls on a few hundred pairs (a check of the path, not of accuracy;
+    # a narrow generator keeps it cheap).
+    narrow = replace(cfg, embed_dim=4, conv_channels=(8, 8), word_embed_dim=8, hidden=32, lr=3e-3, batch_size=32)
+    trainer = GeneratorTrainer(narrow, seed=0)
     views, missions, _ = make_pairs(WorldConfig(), 256, "train", np.random.default_rng(0))
     trainer.dataset.add_many(views, missions)
-    first = trainer.train_steps(5)
-    assert trainer.train_steps(60) < 0.8 * first
+    first = trainer.train_steps(3)
+    assert trainer.train_steps(40) < 0.8 * first
+
+
+def test_paper_world_tuning_applies_to_the_paper_world_only_and_the_paper_profile_overrides_it():
+    higher = make_config("higher", "paper")
+    assert higher.generator.n_min < 1000 and higher.exploration.warmup_frames > 0
+    assert (higher.dqn.batch_size, make_config("her", "small").dqn.batch_size) == (256, 64)
+    small = make_config("higher", "small")
+    assert small.exploration.warmup_frames == 0  # a warm-up as long as a small-world run would be all of it
+    paper = make_config("higher", "paper", "paper")
+    assert paper.generator.n_min == 1000 and paper.exploration.kind == "linear"
