@@ -49,6 +49,7 @@ class RelabelStrategy:
         self.relabelled = 0  # copies returned
         self.correct = 0  # copies whose instruction describes the picked object (metrics only)
         self.recent_correct: deque[bool] = deque(maxlen=RECENT_RELABELS)
+        self.contradicting = 0  # relabels dropped because they named the failed goal
 
     def observe(self, episodes: list[Episode]) -> None:
         """Learn from a batch of finished episodes (only the learned strategy does)."""
@@ -61,6 +62,17 @@ class RelabelStrategy:
     def train(self, budget_steps: int | None = None) -> dict[str, float]:
         """Spend up to `budget_steps` gradient steps on the generator (only the learned strategy does)."""
         return {}
+
+    def _not_contradicting(self, candidates: list[Episode], attrs: np.ndarray) -> np.ndarray:
+        """Indices of the relabels that do not name the goal the episode just failed. Such a copy would
+        store the same transitions with reward 1 beside the original with reward 0; it is dropped and
+        counted as `contradicting`. Compared with the mission the agent followed, not with ground truth."""
+        if not candidates:
+            return np.zeros(0, np.int64)
+        goals, _ = parse_many(np.stack([ep.mission for ep in candidates]))
+        keep = ~(np.asarray(attrs, np.int64) == goals).all(axis=1)
+        self.contradicting += int((~keep).sum())
+        return np.flatnonzero(keep)
 
     def _score(self, originals: list[Episode], new_attrs: np.ndarray) -> None:
         """Count relabels whose described object is the one picked. The only reader of `ep.picked`
@@ -82,11 +94,12 @@ class RelabelStrategy:
             "relabel_accuracy": (sum(self.recent_correct) / len(self.recent_correct)
                                  if self.recent_correct else None),
             "relabel_accuracy_total": self.correct / self.relabelled if self.relabelled else None,
+            "contradicting": self.contradicting,
         }
 
     def state_dict(self) -> dict[str, Any]:
         return {"name": self.name, "rng": self.rng.bit_generator.state, "considered": self.considered,
-                "relabelled": self.relabelled, "correct": self.correct,
+                "relabelled": self.relabelled, "correct": self.correct, "contradicting": self.contradicting,
                 "recent_correct": list(self.recent_correct)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -97,6 +110,7 @@ class RelabelStrategy:
             int(state["considered"]), int(state["relabelled"]), int(state["correct"]))
         self.recent_correct.clear()
         self.recent_correct.extend(bool(x) for x in state.get("recent_correct", []))
+        self.contradicting = int(state.get("contradicting", 0))
 
 
 class ExpertRelabel(RelabelStrategy):
@@ -116,6 +130,8 @@ class ExpertRelabel(RelabelStrategy):
             return []
         picked = np.stack([np.asarray(ep.picked, np.int64) for ep in candidates])
         attrs = self._attrs_for(picked)
+        keep = self._not_contradicting(candidates, attrs)
+        candidates, attrs = [candidates[i] for i in keep], attrs[keep]
         tokens = expert_tokens(attrs, self.rng)
         self._score(candidates, attrs)
         return [ep.relabel(t) for ep, t in zip(candidates, tokens)]
@@ -152,9 +168,6 @@ class LearnedRelabel(RelabelStrategy):
         self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
         self.gated_off = 0  # wrong picks not relabelled because the gate was closed
-        # Relabels naming the very goal the episode failed: the same transitions would be stored with
-        # reward 1 beside the original with reward 0, so they are dropped.
-        self.contradicting = 0
         self._steps_since_eval = 0
 
     def observe(self, episodes: list[Episode]) -> None:
@@ -172,10 +185,8 @@ class LearnedRelabel(RelabelStrategy):
         tokens = self.trainer.generate(views)
         attrs, ok = parse_many(tokens)
         self.unparseable += int((~ok).sum())
-        goals, _ = parse_many(np.stack([ep.mission for ep in candidates]))  # what the agent was told
-        contradicting = ok & (attrs == goals).all(axis=1)
-        self.contradicting += int(contradicting.sum())
-        kept = np.flatnonzero(ok & ~contradicting)
+        kept = np.flatnonzero(ok)
+        kept = kept[self._not_contradicting([candidates[i] for i in kept], attrs[kept])]
         copies = [candidates[i].relabel(tokens[i]) for i in kept]
         self._score([candidates[i] for i in kept], attrs[kept])
         return copies
@@ -202,7 +213,7 @@ class LearnedRelabel(RelabelStrategy):
         out = super().metrics()
         t = self.trainer
         out.update({
-            "unparseable": self.unparseable, "contradicting": self.contradicting, "gated_off": self.gated_off,
+            "unparseable": self.unparseable, "gated_off": self.gated_off,
             "gate_open": t.gate_open,
             "dataset_size": len(t.dataset),
             # As of the latest evaluation (None before the first), and the dataset size it was measured at.
@@ -215,7 +226,6 @@ class LearnedRelabel(RelabelStrategy):
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
         state.update({"trainer": self.trainer.state_dict(), "unparseable": self.unparseable,
-                      "contradicting": self.contradicting,
                       "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval})
         return state
 
@@ -223,7 +233,6 @@ class LearnedRelabel(RelabelStrategy):
         super().load_state_dict(state)
         self.trainer.load_state_dict(state["trainer"])
         self.unparseable, self.gated_off = int(state["unparseable"]), int(state["gated_off"])
-        self.contradicting = int(state.get("contradicting", 0))
         self._steps_since_eval = int(state["steps_since_eval"])
 
 
