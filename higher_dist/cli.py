@@ -240,6 +240,18 @@ def plot_main(argv: list[str] | None = None) -> int:
     return main(sys.argv[1:] if argv is None else argv)
 
 
+def reproduce_main(argv: list[str] | None = None) -> int:
+    from higher_dist.reproduce.cli import main
+
+    return main(sys.argv[1:] if argv is None else argv)
+
+
+def render_main(argv: list[str] | None = None) -> int:
+    from higher_dist.render import main
+
+    return main(sys.argv[1:] if argv is None else argv)
+
+
 def keys_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-keys", description="Make CURVE key pairs for a multi-host cluster.")
     p.add_argument("dir", help="folder to write server and client keys into")
