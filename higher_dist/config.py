@@ -75,7 +75,7 @@ class DQNConfig:
     # obs and next_obs stacked. prefetch: sample the next batch on a thread during the update.
     compile: bool = True
     joint_online: bool = False
-    prefetch: bool = True
+    prefetch: bool = False
 
 
 @dataclass(frozen=True)

@@ -45,6 +45,7 @@ class CompiledLoss:
         self._fn: Callable | None = None
         self._thread: threading.Thread | None = None
         self.failed: str | None = None
+        self._shapes: dict[str, tuple] = {}
 
     @property
     def ready(self) -> bool:
@@ -61,12 +62,18 @@ class CompiledLoss:
             return
         clones = {name: t.detach().clone().requires_grad_(t.requires_grad) for name, t in self._live.items()}
         example = {name: t.clone() for name, t in example.items()}
+        self._shapes = {name: (t.shape, t.dtype) for name, t in example.items()}
         if not background:
             self._build(clones, example)
             return
         self._thread = threading.Thread(target=self._build, args=(clones, example), name="compile-loss",
                                         daemon=True)
         self._thread.start()
+
+    def accepts(self, batch: dict[str, torch.Tensor]) -> bool:
+        """Ready and compiled for this batch's shapes and dtypes. Any other batch goes eager: a
+        recompile would block the caller for as long as the first compile took."""
+        return self.ready and all((t.shape, t.dtype) == self._shapes.get(name) for name, t in batch.items())
 
     def wait(self, timeout: float | None = None) -> bool:
         """Block until the background compile ends; True when the compiled path is ready."""

@@ -193,23 +193,29 @@ class DQNLearner:
         self._update_target()
         metrics["grad_norm"] = grad_norm
         metrics["skipped_updates"] = float(self.skipped_updates)
+        c = self.compiled
+        # 1 while dqn.compile's background compile runs (the cluster benchmark waits for it to end).
+        metrics["compile_pending"] = float(c is not None and c.started and not c.ready and not c.failed)
+        metrics["loss_compiled"] = float(self._ran_compiled)
         return priorities.cpu().numpy().astype(np.float32, copy=False), metrics
 
     def _loss_terms(self, tensors: dict[str, torch.Tensor]):
         """dqn_terms, compiled once the background compile is ready (started by the first batch, whose
         shapes it specialises to), eager until then or when it failed."""
         c = self.compiled
+        self._ran_compiled = False
         if c is None or c.failed:
             return dqn_terms(self.online, self.target, huber_delta=self.cfg.huber_delta, double=self.cfg.double,
                              joint_online=self.cfg.joint_online, **tensors)
         if not c.started:
             c.start(tensors)
-        if not c.ready:
+        if not c.accepts(tensors):
             return dqn_terms(self.online, self.target, huber_delta=self.cfg.huber_delta, double=self.cfg.double,
                              joint_online=self.cfg.joint_online, **tensors)
         # The compiled graph has no room for a data-dependent raise: check the views here.
         self.online.view.check_views(tensors["obs"])
         self.online.view.check_views(tensors["next_obs"])
+        self._ran_compiled = True
         return c(tensors)
 
     def _update_target(self) -> None:

@@ -17,3 +17,26 @@ def test_unknown_benchmark_is_refused_with_the_known_names(capsys):
     assert main(["nope"]) == 2
     err = capsys.readouterr().err
     assert "'nope'" in err and all(name in err for name in COMMANDS)
+
+
+def test_time_to_success_finds_the_first_evaluation_at_each_level():
+    from higher_dist.bench.time_to_success_bench import crossings
+
+    records = [{"frames": 1000, "time": 110.0},  # no evaluation yet
+               {"frames": 25_000, "time": 130.0, "success_rate_eval_train": 0.05},
+               {"frames": 50_000, "time": 150.0, "success_rate_eval_train": 0.25},
+               {"frames": 75_000, "time": 170.0, "success_rate_eval_train": 0.15},
+               {"frames": 100_000, "time": 190.0, "success_rate_eval_train": 0.41}]
+    found = crossings(records, [0.1, 0.2, 0.4, 0.5], launched=100.0)
+    assert found[0.1] == {"frames": 50_000, "seconds": 50.0, "success": 0.25}
+    assert found[0.2]["frames"] == 50_000  # one evaluation can cross two levels
+    assert found[0.4] == {"frames": 100_000, "seconds": 90.0, "success": 0.41}
+    assert 0.5 not in found
+
+
+def test_time_to_success_refuses_a_target_outside_0_1(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit):
+        main(["time-to-success", "--target", "40"])
+    assert "--target" in capsys.readouterr().err
