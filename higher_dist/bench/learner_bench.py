@@ -25,10 +25,11 @@ import torch
 
 from higher_dist.config import DQNConfig, NetworkConfig
 from higher_dist.learning.dqn import DQNLearner
-from higher_dist.learning.networks import VIEW_CHANNEL_VALUES, count_parameters
+from higher_dist.learning.networks import count_parameters
+from higher_dist.world.spec import DEFAULT_SPEC, VIEW_CHANNEL_VALUES
 
 BATCH_SIZES = (64, 128, 256)
-VOCAB_SIZE = 40
+VOCAB_SIZE = DEFAULT_SPEC.vocab_size
 MISSION_LEN = 10
 _POOL = 8  # distinct batches cycled per size: varied inputs without generation inside the timing
 
@@ -154,8 +155,11 @@ def make_core(batch_size: int, lever: Lever, cfg=None, threads: int = 1):
     core = LearnerCore(cfg)
     rng = np.random.default_rng(0)
     pool = [synthetic_episode(rng, int(rng.integers(5, cfg.world.max_steps + 1))) for _ in range(64)]
-    while core.replay.transitions_added < cfg.replay.capacity:
-        core.replay.add_episode(pool[int(rng.integers(len(pool)))])
+    added = 0
+    while added < cfg.replay.capacity:
+        episode = pool[int(rng.integers(len(pool)))]
+        core.replay.add_episode(episode)
+        added += episode.length
     compile_s = None
     if core.dqn.compiled is not None:
         t0 = time.perf_counter()
@@ -277,10 +281,10 @@ def _network_shape(args, sizes: list[int]) -> int:
     dqn_cfg = DQNConfig(compile=False)
     rng = np.random.default_rng(args.seed)
     print(f"network {dataclasses.asdict(net_cfg)}, "
-          f"{count_parameters(DQNLearner(net_cfg, dqn_cfg, vocab_size=VOCAB_SIZE).online)} parameters, eager")
+          f"{count_parameters(DQNLearner(net_cfg, dqn_cfg).online)} parameters, eager")
     summary: dict[str, object] = {"network": dataclasses.asdict(net_cfg)}
     for b in sizes:
-        learner = DQNLearner(net_cfg, dqn_cfg, vocab_size=VOCAB_SIZE, seed=args.seed)
+        learner = DQNLearner(net_cfg, dqn_cfg, seed=args.seed)
         batches = [synthetic_batch(rng, b, net_cfg.frame_stack, gamma=dqn_cfg.gamma, n_step=dqn_cfg.n_step)
                    for _ in range(_POOL)]
         r = measure(learner, batches, args.seconds, 10)

@@ -1,6 +1,6 @@
 """Hindsight relabelling strategies: what a failed episode is stored again under.
 
-The paper's methods differ only here (DESIGN.md section 1):
+The paper's methods differ only here (see the table of methods in README.md):
 - `none`    (DQN, DQN+reward): nothing is relabelled;
 - `expert`  (DQN+HER): the picked object, described from ground truth (the expert reads it by design);
 - `noisy`   (DQN+HER noisy): the same with each attribute resampled with probability p;
@@ -22,8 +22,9 @@ from higher_dist.config import Config, GeneratorConfig
 from higher_dist.learning.episode import WRONG_PICK, Episode
 from higher_dist.learning.generator import GeneratorTrainer
 from higher_dist.learning.generator_data import parse_many
-from higher_dist.world.language import VOCAB, expert_tokens, noisy_attrs
+from higher_dist.world.language import expert_tokens, noisy_attrs
 from higher_dist.world.objects import ObjectSpace
+from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
 STRATEGIES = ("none", "expert", "noisy", "learned")
 
@@ -43,6 +44,7 @@ class RelabelStrategy:
         self.considered = 0  # wrong-pick episodes offered for relabelling
         self.relabelled = 0  # copies returned
         self.correct = 0  # copies whose instruction describes the picked object (metrics only)
+        self.contradicting = 0  # relabels dropped because they named the failed goal
 
     def observe(self, episodes: list[Episode]) -> None:
         """Learn from a batch of finished episodes (only the learned strategy does)."""
@@ -55,6 +57,17 @@ class RelabelStrategy:
     def train(self, budget_steps: int | None = None) -> dict[str, float]:
         """Spend up to `budget_steps` gradient steps on the generator (only the learned strategy does)."""
         return {}
+
+    def _not_contradicting(self, candidates: list[Episode], attrs: np.ndarray) -> np.ndarray:
+        """Indices of the relabels that do not name the goal the episode just failed. Such a copy would
+        store the same transitions with reward 1 beside the original with reward 0; it is dropped and
+        counted as `contradicting`. Compared with the mission the agent followed, not with ground truth."""
+        if not candidates:
+            return np.zeros(0, np.int64)
+        goals, _ = parse_many(np.stack([ep.mission for ep in candidates]))
+        keep = ~(np.asarray(attrs, np.int64) == goals).all(axis=1)
+        self.contradicting += int((~keep).sum())
+        return np.flatnonzero(keep)
 
     def _score(self, originals: list[Episode], new_attrs: np.ndarray) -> None:
         """Count relabels whose described object is the one picked. The only reader of `ep.picked`
@@ -72,11 +85,12 @@ class RelabelStrategy:
             "relabelled": self.relabelled,
             # None until something was relabelled: "no data", not "always wrong".
             "relabel_accuracy": self.correct / self.relabelled if self.relabelled else None,
+            "contradicting": self.contradicting,
         }
 
     def state_dict(self) -> dict[str, Any]:
         return {"name": self.name, "rng": self.rng.bit_generator.state, "considered": self.considered,
-                "relabelled": self.relabelled, "correct": self.correct}
+                "relabelled": self.relabelled, "correct": self.correct, "contradicting": self.contradicting}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["name"] != self.name:
@@ -84,6 +98,7 @@ class RelabelStrategy:
         self.rng.bit_generator.state = state["rng"]
         self.considered, self.relabelled, self.correct = (
             int(state["considered"]), int(state["relabelled"]), int(state["correct"]))
+        self.contradicting = int(state.get("contradicting", 0))
 
 
 class ExpertRelabel(RelabelStrategy):
@@ -103,6 +118,8 @@ class ExpertRelabel(RelabelStrategy):
             return []
         picked = np.stack([np.asarray(ep.picked, np.int64) for ep in candidates])
         attrs = self._attrs_for(picked)
+        keep = self._not_contradicting(candidates, attrs)
+        candidates, attrs = [candidates[i] for i in keep], attrs[keep]
         tokens = expert_tokens(attrs, self.rng)
         self._score(candidates, attrs)
         return [ep.relabel(t) for ep, t in zip(candidates, tokens)]
@@ -132,11 +149,10 @@ class LearnedRelabel(RelabelStrategy):
 
     name = "learned"
 
-    def __init__(self, cfg: GeneratorConfig, vocab_size: int, seed: int = 0, device: str = "cpu",
-                 view_size: int = 7):
+    def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int = 0, device: str = "cpu"):
         super().__init__(seed)
         self.cfg = cfg
-        self.trainer = GeneratorTrainer(cfg, vocab_size, seed, device=device, view_size=view_size)
+        self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
         self.gated_off = 0  # wrong picks not relabelled because the gate was closed
         self._steps_since_eval = 0
@@ -157,23 +173,25 @@ class LearnedRelabel(RelabelStrategy):
         attrs, ok = parse_many(tokens)
         self.unparseable += int((~ok).sum())
         kept = np.flatnonzero(ok)
+        kept = kept[self._not_contradicting([candidates[i] for i in kept], attrs[kept])]
         copies = [candidates[i].relabel(tokens[i]) for i in kept]
         self._score([candidates[i] for i in kept], attrs[kept])
         return copies
 
     def train(self, budget_steps: int | None = None) -> dict[str, float]:
-        """Train in rounds of `train_steps_per_round` steps; evaluate every `rounds_per_eval` rounds.
+        """Take `budget_steps` gradient steps (the pace in learning/agent.GeneratorPace decides how many);
+        evaluate on the validation pairs every `eval_every_updates` steps. Returns {} when nothing ran.
 
         Training waits for a first full batch of training pairs: a handful of pairs would only be
         memorised, and the CPU is better spent elsewhere until then.
         """
-        steps = self.cfg.train_steps_per_round if budget_steps is None else int(budget_steps)
+        steps = self.cfg.eval_every_updates if budget_steps is None else int(budget_steps)
         if steps <= 0 or self.trainer.dataset.n_train < self.cfg.batch_size:
             return {}
         loss = self.trainer.train_steps(steps)
         self._steps_since_eval += steps
         out = {"loss": loss}
-        if self._steps_since_eval >= self.cfg.rounds_per_eval * self.cfg.train_steps_per_round:
+        if self._steps_since_eval >= self.cfg.eval_every_updates:
             self._steps_since_eval = 0
             out.update({f"val_{k}": v for k, v in self.trainer.evaluate().items()})
         return out
@@ -211,5 +229,5 @@ def make_relabeler(cfg: Config, seed: int, space: ObjectSpace | None = None) -> 
     if kind == "noisy":
         return NoisyExpertRelabel(space if space is not None else ObjectSpace(cfg.world), cfg.relabel.noise_p, seed)
     if kind == "learned":
-        return LearnedRelabel(cfg.generator, len(VOCAB), seed, device=cfg.device, view_size=cfg.world.view_size)
+        return LearnedRelabel(cfg.generator, WorldSpec.of(cfg.world), seed, device=cfg.device)
     raise ValueError(f"relabel.strategy: unknown strategy {kind!r}; choose one of {', '.join(STRATEGIES)}")
