@@ -3,8 +3,8 @@
 Runs the real cluster (`higher-cluster`, every role in its own process, as a user runs it: the
 single-process runner would serialise acting and learning on one core and measure a slower system
 than the one people use) on the paper world, and watches its metrics: the greedy success rate on
-training goals that the actor's periodic evaluation reports (`evaluate_goal_sets`, the run's own
-evaluation). It stops at the first evaluation at or above `--target`, or at `--frames-cap` env
+training goals that the learner's periodic evaluation reports (`evaluate_goal_sets`, the run's own
+evaluation, on a thread of the learner). It stops at the first evaluation at or above `--target`, or at `--frames-cap` env
 frames, or after `--max-minutes`, and reports env frames and wall-clock seconds (from the launch, so
 start-up and the learner's background compile count) to 10%, 20% and 40% success and to the target.
 One seed per call: run it again with `--seed` for the spread. Takes tens of minutes, so it is not
@@ -22,15 +22,17 @@ import tempfile
 import time
 from pathlib import Path
 
+from higher_dist import metrics as names
 from higher_dist.launch.topology import free_base_port
 from higher_dist.rundir import read_metrics
 
 LEVELS = (0.1, 0.2, 0.4)
-SUCCESS_KEY = "success_rate_eval_train"
+SUCCESS_KEY = names.SUCCESS_EVAL_TRAIN
 
 
 def crossings(records: list[dict], levels: list[float], launched: float) -> dict[float, dict]:
-    """For each level, the first record whose evaluation reached it: env frames and seconds since launch."""
+    """For each level, the first record whose evaluation reached it: the env frames the evaluated weights
+    had seen (`eval_frames`, else the record's frames) and the record's seconds since launch."""
     out: dict[float, dict] = {}
     for r in records:
         value = r.get(SUCCESS_KEY)
@@ -38,7 +40,7 @@ def crossings(records: list[dict], levels: list[float], launched: float) -> dict
             continue
         for level in levels:
             if level not in out and value >= level:
-                out[level] = {"frames": int(r["frames"]), "seconds": round(r["time"] - launched, 1),
+                out[level] = {"frames": int(r.get("eval_frames", r["frames"])), "seconds": round(r["time"] - launched, 1),
                               "success": round(float(value), 3)}
     return out
 

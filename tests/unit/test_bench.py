@@ -40,3 +40,11 @@ def test_time_to_success_refuses_a_target_outside_0_1(capsys):
     with pytest.raises(SystemExit):
         main(["time-to-success", "--target", "40"])
     assert "--target" in capsys.readouterr().err
+
+
+def test_time_to_success_uses_the_frames_the_evaluated_weights_had_seen():
+    from higher_dist.bench.time_to_success_bench import crossings
+
+    found = crossings([{"frames": 60_000, "eval_frames": 50_000, "time": 20.0, "success_rate_eval_train": 0.5}],
+                      [0.4], launched=0.0)
+    assert found[0.4]["frames"] == 50_000
