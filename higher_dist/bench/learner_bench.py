@@ -219,6 +219,7 @@ def run_table(levers: list[Lever], sizes: list[int], seconds: float, repeat: int
     for (lever, b), rs in runs.items():
         table[lever.name, b] = {
             "samples_per_s": statistics.median(r["samples_per_s"] for r in rs),
+            "updates_per_s": statistics.median(r["updates_per_s"] for r in rs),
             "cpu_samples_per_s": statistics.median(r["cpu_samples_per_s"] for r in rs),
             "runs": [round(r["samples_per_s"]) for r in rs], "compile_s": compile_s[lever, b],
         }
@@ -268,6 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     for b in sizes:
         cell = table[defaults.name, b]
         summary[f"b{b}_samples_per_s"] = round(cell["samples_per_s"])
+        summary[f"b{b}_updates_per_s"] = round(cell["updates_per_s"], 1)
         summary[f"b{b}_cpu_samples_per_s"] = round(cell["cpu_samples_per_s"])
     print(json.dumps(summary))
     return 0

@@ -48,3 +48,12 @@ def test_time_to_success_uses_the_frames_the_evaluated_weights_had_seen():
     found = crossings([{"frames": 60_000, "eval_frames": 50_000, "time": 20.0, "success_rate_eval_train": 0.5}],
                       [0.4], launched=0.0)
     assert found[0.4]["frames"] == 50_000
+
+
+def test_learner_bench_measures_one_lever_row_through_the_replay(capsys):
+    assert main(["learner", "--only", "prefetch", "--batch-sizes", "8", "--seconds", "0.05"]) == 0
+    out = capsys.readouterr().out
+    last = json.loads(out.strip().splitlines()[-1])
+    row = last["rows"]["+ prefetch"]["b8"]
+    assert row["samples_per_s"] > 0 and row["cpu_samples_per_s"] > 0 and row["compile_s"] is None
+    assert last["b8_samples_per_s"] == row["samples_per_s"] and "+ prefetch" in out
