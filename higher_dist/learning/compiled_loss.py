@@ -88,6 +88,10 @@ class CompiledLoss:
             # The instruction encoder holds an nn.GRU (its weights; the compiled path unrolls the
             # recurrence): without this Dynamo refuses to look at the module at all.
             torch._dynamo.config.allow_rnn = True
+            # Every CompiledLoss compiles the same Python function, so Dynamo counts each one (another
+            # batch size, another learner in the same process: benchmarks, tests) as a recompile of it;
+            # past the limit (8) it would silently run eager.
+            torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, 64)
             module = self._module
 
             def functional(state: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]):
