@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 TORCH_VERSION ?= 2.13.0
 
-.PHONY: install test test-fast cluster bench reproduce lint clean
+.PHONY: install test test-fast cluster bench bench-time reproduce lint clean
 
 # `make reproduce -- --dry-run --seeds 2 main`: the words after `reproduce` are higher-reproduce's
 # arguments (write `--seeds 2`, not `--seeds=2`: make takes NAME=VALUE words as its own variables).
@@ -43,6 +43,11 @@ reproduce: install
 bench: install
 	mkdir -p results
 	$(BIN)/higher-bench all --results results
+
+# Tens of minutes: the real cluster until greedy success reaches the target (not part of `make bench`).
+bench-time: install
+	mkdir -p results
+	$(BIN)/higher-bench time-to-success --preset her --target 0.4 $(ARGS) | tee results/time-to-success-her.txt
 
 lint: install
 	$(BIN)/python -m compileall -q higher_dist tests
