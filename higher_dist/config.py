@@ -107,8 +107,13 @@ class GeneratorConfig:
     val_fraction: float = 0.1
     n_min: int = 1000  # gate: pairs needed before relabelling (paper: 1000)
     min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
-    train_steps_per_round: int = 50
-    rounds_per_eval: int = 4
+    # Training pace, as data: generator updates per 1000 env frames of original episodes. The runner and
+    # the relabeler service both enforce it (learning/agent.GeneratorPace), so the generator's training
+    # per frame does not depend on the machine.
+    # 10/kframe: ~10 updates/s at 1,000 frames/s, a fraction of a core (one update of batch 64 costs
+    # 15-40 ms here), and 5,000 updates by 500k frames, where 1,500 reach 99% exact match on 5,000 pairs.
+    updates_per_kframe: float = 10.0
+    eval_every_updates: int = 200  # validation exact match (the gate's input) every this many updates
 
 
 @dataclass(frozen=True)
@@ -185,7 +190,7 @@ def make_config(preset: str = "higher", world: str = "paper", **overrides: Any) 
         # replay fills in seconds.
         cfg = replace(
             cfg,
-            generator=replace(cfg.generator, n_min=100, capacity=2000, train_steps_per_round=20),
+            generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=20.0),
             replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
             exploration=replace(cfg.exploration, decay_frames=50_000),
             eval=EvalConfig(every_frames=10_000, episodes=32),
@@ -319,6 +324,8 @@ def validate(cfg: Config) -> None:
     _check(0 <= g.min_accuracy <= 1, f"generator.min_accuracy: must be in [0, 1], got {g.min_accuracy}")
     _check(g.max_len >= 6, f"generator.max_len: must be >= 6 to hold an instruction, got {g.max_len}")
     _check(g.capacity >= 10, f"generator.capacity: must be >= 10, got {g.capacity}")
+    _check(g.updates_per_kframe >= 0, f"generator.updates_per_kframe: must be >= 0, got {g.updates_per_kframe}")
+    _check(g.eval_every_updates >= 1, f"generator.eval_every_updates: must be >= 1, got {g.eval_every_updates}")
     rl = cfg.relabel
     _check(rl.strategy in ("none", "expert", "noisy", "learned"),
            f"relabel.strategy: must be none, expert, noisy or learned, got {rl.strategy!r}")

@@ -47,7 +47,7 @@ class RunDir:
     def append_metrics(self, record: dict[str, Any]) -> None:
         record = {"time": round(time.time(), 3), **record}
         with open(self.metrics_path, "a") as f:
-            f.write(json.dumps(record, default=plain_number) + "\n")
+            f.write(json.dumps(plain_record(record)) + "\n")
         if self._tb is not None:
             # Every number of the record, against env frames, as TensorBoard scalars.
             step = int(record.get("frames") or 0)
@@ -104,11 +104,18 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     atomic_write(path, lambda tmp: tmp.write_bytes(data))
 
 
-def plain_number(x: Any) -> Any:
-    """`default=` for json/msgpack: numpy scalars as Python numbers."""
-    if isinstance(x, np.generic):
-        return x.item()
-    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+def plain_record(obj: Any) -> Any:
+    """A copy of a metrics record in plain Python values: numpy scalars as numbers, tuples as lists, and
+    NaN or infinity as None (the wire refuses non-finite numbers; a metric that has none is "no data")."""
+    if isinstance(obj, dict):
+        return {str(k): plain_record(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain_record(v) for v in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
 
 
 def _to_tensors(obj: Any) -> Any:

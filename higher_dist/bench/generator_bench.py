@@ -77,7 +77,7 @@ def run(pairs: int, steps: int, seed: int, world: WorldConfig, eval_pairs: int,
     # All N pairs train (the dataset's own validation split is made negligible): the held-out
     # measures below use fresh pairs instead.
     cfg = replace(cfg or GeneratorConfig(), capacity=max(pairs, 10), val_fraction=1e-9)
-    trainer = GeneratorTrainer(cfg, len(VOCAB), seed)
+    trainer = GeneratorTrainer(cfg, seed)
     trainer.dataset.add_many(train[0], train[1])
     t1 = time.perf_counter()
     chunk = max(1, min(500, steps))

@@ -19,10 +19,11 @@ import torch
 
 from higher_dist.config import DQNConfig, NetworkConfig
 from higher_dist.learning.dqn import DQNLearner
-from higher_dist.learning.networks import VIEW_CHANNEL_VALUES, count_parameters
+from higher_dist.learning.networks import count_parameters
+from higher_dist.world.spec import DEFAULT_SPEC, VIEW_CHANNEL_VALUES
 
 BATCH_SIZES = (64, 128, 256)
-VOCAB_SIZE = 40
+VOCAB_SIZE = DEFAULT_SPEC.vocab_size
 MISSION_LEN = 10
 _POOL = 8  # distinct batches cycled per size: varied inputs without generation inside the timing
 
@@ -116,8 +117,11 @@ def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmu
     core = LearnerCore(cfg)
     rng = np.random.default_rng(0)
     pool = [synthetic_episode(rng, int(rng.integers(5, cfg.world.max_steps + 1))) for _ in range(64)]
-    while core.replay.transitions_added < cfg.replay.capacity:
-        core.replay.add_episode(pool[int(rng.integers(len(pool)))])
+    added = 0
+    while added < cfg.replay.capacity:
+        episode = pool[int(rng.integers(len(pool)))]
+        core.replay.add_episode(episode)
+        added += episode.length
     for _ in range(warmup):
         core.update()
     n, t0 = 0, time.perf_counter()
@@ -144,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     sizes = [int(s) for s in args.batch_sizes.split(",") if s]
     rng = np.random.default_rng(args.seed)
 
-    params = count_parameters(DQNLearner(net_cfg, dqn_cfg, device=args.device, vocab_size=VOCAB_SIZE).online)
+    params = count_parameters(DQNLearner(net_cfg, dqn_cfg, device=args.device).online)
     print(f"learner bench: {args.threads} thread(s), device {args.device}, torch {torch.__version__}, "
           f"{params} parameters")
     print(f"network: {dataclasses.asdict(net_cfg)}")
@@ -153,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
                                   "network": dataclasses.asdict(net_cfg)}
     for b in sizes:
         # A fresh learner per size: Adam state and target schedule start alike for every row.
-        learner = DQNLearner(net_cfg, dqn_cfg, device=args.device, vocab_size=VOCAB_SIZE, seed=args.seed)
+        learner = DQNLearner(net_cfg, dqn_cfg, device=args.device, seed=args.seed)
         batches = [synthetic_batch(rng, b, net_cfg.frame_stack, gamma=dqn_cfg.gamma, n_step=dqn_cfg.n_step)
                    for _ in range(_POOL)]
         r = measure(learner, batches, args.seconds, args.warmup)

@@ -1,6 +1,6 @@
 """`higher-bench all` (what `make bench` runs): every benchmark in its own process, one after another,
 each one's readable output passed through, its last-line JSON saved to RESULTS/NAME.json, and a
-summary table of the headline figures against the targets of DESIGN.md section 7 at the end."""
+summary table of the headline figures against the targets listed in docs/benchmarks.md at the end."""
 from __future__ import annotations
 
 import argparse

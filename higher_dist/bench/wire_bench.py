@@ -17,32 +17,25 @@ from typing import Callable
 import numpy as np
 import zmq
 
-from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
+from dataclasses import replace
+
+from higher_dist.config import WorldConfig
+from higher_dist.learning.episode import Episode
+from higher_dist.learning.samples import real_episodes
+from higher_dist.world.spec import WorldSpec
 from higher_dist.wire import (RejectCounter, bind_random, decode, decode_weights, encode, encode_weights,
                               make_socket, pack_episodes, recv_message, send, unpack_episodes)
 
-VOCAB_SIZE = 32  # about the paper's vocabulary; world/ owns the real one
-MISSION_LEN = 10
 
 
 def random_episodes(n: int, max_steps: int, seed: int = 0) -> list[Episode]:
-    """Episodes with plausible content: mostly empty cells and walls, a few objects, full-length time-outs."""
-    rng = np.random.default_rng(seed)
-    episodes = []
-    for i in range(n):
-        outcome = (SUCCESS, WRONG_PICK, TIMEOUT)[i % 3]
-        length = max_steps if outcome == TIMEOUT else int(rng.integers(1, max_steps + 1))
-        kind = rng.choice(5, size=(length + 1, 7, 7), p=[0.2, 0.55, 0.15, 0.05, 0.05]).astype(np.uint8)
-        is_object = kind >= 3
-        attrs = rng.integers(1, [7, 6, 6], size=(length + 1, 7, 7, 3)).astype(np.uint8) * is_object[..., None]
-        rewards = np.zeros(length, np.float32)
-        rewards[-1] = float(outcome == SUCCESS)
-        episodes.append(Episode(
-            frames=np.concatenate([kind[..., None], attrs], axis=-1), actions=rng.integers(0, 4, length, np.uint8),
-            rewards=rewards, mission=rng.integers(3, VOCAB_SIZE, MISSION_LEN), outcome=outcome,
-            picked=rng.integers(0, [6, 2, 5, 5]).astype(np.int8), goal=rng.integers(0, [6, 2, 5, 5]).astype(np.int8),
-            actor_id=1, weights_version=i))
-    return episodes
+    """Real episodes of a random policy on the paper world with this episode limit (the wire checks
+    episodes against the world, so made-up arrays would be refused)."""
+    return real_episodes(_world(max_steps), n, seed=seed)
+
+
+def _world(max_steps: int) -> WorldConfig:
+    return replace(WorldConfig(), max_steps=max_steps)
 
 
 def _time_ms(fn: Callable[[], object], min_seconds: float = 0.3, min_repeats: int = 20) -> float:
@@ -91,7 +84,7 @@ def push_pull_throughput(n: int, max_steps: int, seconds: float) -> dict[str, fl
             if start is None:
                 start = time.perf_counter()  # count from the first batch, not from process start-up
                 continue
-            episodes += len(unpack_episodes(msg, max_steps, vocab_size=VOCAB_SIZE))
+            episodes += len(unpack_episodes(msg, WorldSpec.of(_world(max_steps))))
             payload += sum(arr.nbytes for arr in msg.arrays.values())
             batches += 1
     finally:
@@ -135,7 +128,7 @@ def run(argv: list[str] | None = None) -> dict[str, float]:
         "pack_ms": _time_ms(lambda: pack_episodes(episodes)),
         "encode_ms": _time_ms(lambda: encode("episodes", fields, arrays)),
         "decode_ms": _time_ms(lambda: decode(frames)),
-        "unpack_ms": _time_ms(lambda: unpack_episodes(message, args.steps, vocab_size=VOCAB_SIZE)),
+        "unpack_ms": _time_ms(lambda: unpack_episodes(message, WorldSpec.of(_world(args.steps)))),
         "weights_encode_ms": _time_ms(lambda: encode_weights(1, weights)),
         "weights_decode_ms": _time_ms(lambda: decode_weights(weights_frame)),
     }

@@ -9,7 +9,7 @@ against the allow-list, and without keys nothing binds beyond loopback unless th
     control     base      learner ROUTER <- DEALER actor, relabeler   hello/welcome, register, heartbeats, stats, stop
     experience  base + 1  learner PULL   <- PUSH relabeler            episodes (originals and relabelled copies)
     weights     base + 2  learner PUB    -> SUB actor (CONFLATE)      versioned Q-network weights, one frame
-    telemetry   base + 3  learner PUB    -> SUB dashboard (CONFLATE)  one record per refresh
+    telemetry   base + 3  learner PUB    -> SUB dashboard (CONFLATE)  one telemetry record per refresh, stop
     episodes    base + 4  relabeler PULL <- PUSH actor                episodes from actors
 
 The episodes channel is the relabeler's: it may run on another host and advertise its own address
@@ -45,7 +45,7 @@ class Channel:
     connectors: tuple[str, ...]  # the roles that connect: CURVE clients
     bind_kind: int
     connect_kind: int
-    messages: tuple[str, ...]  # the message types it carries (telemetry: a msgpack record)
+    messages: tuple[str, ...]  # the message types it carries (wire/schema.py)
     bind_hwm: int
     connect_hwm: int
     kernel_buffer: int | None = None  # SO_SNDBUF/SO_RCVBUF where backpressure must be prompt
@@ -60,7 +60,7 @@ CHANNELS: dict[str, Channel] = {c.name: c for c in (
             bind_hwm=EXPERIENCE_HWM, connect_hwm=EXPERIENCE_HWM, kernel_buffer=EXPERIENCE_BUFFER),
     Channel("weights", 2, "learner", ("actor",), zmq.PUB, zmq.SUB, ("weights",),
             bind_hwm=2, connect_hwm=2, conflate=True, connect_linger_ms=0),
-    Channel("telemetry", 3, "learner", ("dashboard",), zmq.PUB, zmq.SUB, ("telemetry",),
+    Channel("telemetry", 3, "learner", ("dashboard",), zmq.PUB, zmq.SUB, ("telemetry", "stop"),
             bind_hwm=10, connect_hwm=4, conflate=True, connect_linger_ms=0),
     Channel("episodes", 4, "relabeler", ("actor",), zmq.PULL, zmq.PUSH, ("episodes",),
             bind_hwm=EXPERIENCE_HWM, connect_hwm=EXPERIENCE_HWM, kernel_buffer=EXPERIENCE_BUFFER),

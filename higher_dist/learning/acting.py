@@ -16,7 +16,7 @@ from higher_dist.learning.episode import Episode
 from higher_dist.learning.exploration import epsilon_greedy
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
 from higher_dist.world.grid import BatchedFetchAttr
-from higher_dist.world.language import VOCAB
+from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
 QFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -77,9 +77,9 @@ class EpisodeCollector:
 class TorchQFunction:
     """Batched greedy Q-values from a QNetwork whose weights arrive as numpy arrays (actors, eval)."""
 
-    def __init__(self, net_cfg: NetworkConfig, device: str = "cpu"):
+    def __init__(self, net_cfg: NetworkConfig, spec: WorldSpec = DEFAULT_SPEC, device: str = "cpu"):
         self.device = torch.device(device)
-        self.net = QNetwork(net_cfg, vocab_size=len(VOCAB)).to(self.device).eval()
+        self.net = QNetwork(net_cfg, spec).to(self.device).eval()
 
     def load(self, arrays: dict[str, np.ndarray]) -> None:
         load_weights_numpy(self.net, arrays)

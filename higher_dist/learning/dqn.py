@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from higher_dist.config import DQNConfig, NetworkConfig
+from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 from higher_dist.learning.networks import QNetwork, load_weights_numpy, weights_numpy
 
 __all__ = ["TransitionBatchLike", "dqn_loss", "DQNLearner"]
@@ -94,7 +95,7 @@ class DQNLearner:
     """Online and target Q-networks, Adam, and the target-update schedule."""
 
     def __init__(self, net_cfg: NetworkConfig, dqn_cfg: DQNConfig, device: str = "cpu",
-                 vocab_size: int = 40, seed: int = 0):
+                 spec: WorldSpec = DEFAULT_SPEC, seed: int = 0):
         if dqn_cfg.target_update not in ("period", "polyak"):
             raise ValueError(f"target_update: must be period or polyak, got {dqn_cfg.target_update!r}")
         self.net_cfg = net_cfg
@@ -103,8 +104,8 @@ class DQNLearner:
         # Seeded initialisation without resetting the caller's global torch RNG.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.online = QNetwork(net_cfg, vocab_size=vocab_size).to(self.device)
-        self.target = QNetwork(net_cfg, vocab_size=vocab_size).to(self.device)
+            self.online = QNetwork(net_cfg, spec).to(self.device)
+        self.target = QNetwork(net_cfg, spec).to(self.device)
         self.target.load_state_dict(self.online.state_dict())
         self.target.requires_grad_(False)
         self.target.eval()

@@ -10,8 +10,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-SUCCESS, WRONG_PICK, TIMEOUT = 0, 1, 2
-OUTCOME_NAMES = ("success", "wrong_pick", "timeout")
+from higher_dist.world.spec import OUTCOME_NAMES, SUCCESS, TIMEOUT, WRONG_PICK  # noqa: F401  (owned by world/)
 
 
 @dataclass

@@ -23,7 +23,8 @@ from higher_dist.config import GeneratorConfig
 from higher_dist.learning.episode import Episode
 from higher_dist.learning.generator_data import GeneratorDataset, parse_many, semantic_accuracy
 from higher_dist.learning.networks import ViewEncoder
-from higher_dist.world.language import BEG, END, MISSION_LEN, PAD
+from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
+from higher_dist.world.language import BEG, END, PAD
 
 GRAD_CLIP = 5.0  # GRU decoders occasionally spike early in training; clipping keeps Adam steady
 EVAL_CHUNK = 1024  # validation is decoded in chunks to bound memory
@@ -46,11 +47,13 @@ class InstructionGenerator(nn.Module):
     sees the whole view (walls, distractors) as in the paper.
     """
 
-    def __init__(self, cfg: GeneratorConfig, vocab_size: int, view_size: int = 7):
+    def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC):
         super().__init__()
-        self.cfg, self.vocab_size, self.view_size = cfg, int(vocab_size), view_size
-        self.front = front_cell(view_size)
-        self.encoder = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), in_frames=1, view_size=view_size)
+        vocab_size = spec.vocab_size
+        self.cfg, self.vocab_size, self.view_size = cfg, int(vocab_size), spec.view_size
+        self.mission_len = spec.mission_len
+        self.front = front_cell(spec.view_size)
+        self.encoder = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), in_frames=1, spec=spec)
         self.context = nn.Linear(self.encoder.out_dim + cfg.embed_dim, cfg.hidden)
         self.init_hidden = nn.Linear(cfg.hidden, cfg.hidden)
         self.word_embed = nn.Embedding(vocab_size, cfg.word_embed_dim, padding_idx=PAD)
@@ -99,7 +102,7 @@ class InstructionGenerator(nn.Module):
         ctx = self.encode(views)
         h = torch.tanh(self.init_hidden(ctx))[None]
         token = torch.full((b, 1), BEG, dtype=torch.long, device=views.device)
-        words = torch.full((b, max(max_len, MISSION_LEN)), PAD, dtype=torch.long, device=views.device)
+        words = torch.full((b, max(max_len, self.mission_len)), PAD, dtype=torch.long, device=views.device)
         done = torch.zeros(b, dtype=torch.bool, device=views.device)
         for t in range(max_len):
             logits, h = self._step(token, ctx, h)
@@ -112,7 +115,7 @@ class InstructionGenerator(nn.Module):
                 break
             token = nxt[:, None]
         # An output that never ended is cut to the mission length; the parser judges it.
-        return words[:, :MISSION_LEN]
+        return words[:, :self.mission_len]
 
     def greedy(self, views: torch.Tensor, max_len: int | None = None) -> torch.Tensor:
         """(B, MISSION_LEN) int64 word tokens, PAD-padded; at most `max_len` decoding steps."""
@@ -143,15 +146,15 @@ def decoder_targets(missions: torch.Tensor) -> torch.Tensor:
 class GeneratorTrainer:
     """Model + Adam + dataset, with the gate that says when the generator may relabel."""
 
-    def __init__(self, cfg: GeneratorConfig, vocab_size: int, seed: int, device: str = "cpu", view_size: int = 7):
+    def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int = 0, device: str = "cpu"):
         self.cfg, self.device = cfg, torch.device(device)
         # A private RNG stream for the initial weights: building a trainer leaves the global torch
         # RNG untouched, and two trainers with one seed start identical.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.model = InstructionGenerator(cfg, vocab_size, view_size).to(self.device)
+            self.model = InstructionGenerator(cfg, spec).to(self.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
-        self.dataset = GeneratorDataset(cfg.capacity, cfg.val_fraction, seed, view_size)
+        self.dataset = GeneratorDataset(cfg.capacity, cfg.val_fraction, seed, spec)
         self.rng = np.random.default_rng(seed)
         self.steps = 0  # gradient steps taken
         self.evaluations = 0
@@ -186,7 +189,7 @@ class GeneratorTrainer:
         """Greedy instructions (N, MISSION_LEN) int64 for (N, V, V, 4) views."""
         views = np.asarray(views)
         if views.shape[0] == 0:
-            return np.zeros((0, MISSION_LEN), np.int64)
+            return np.zeros((0, self.model.mission_len), np.int64)
         self.model.eval()
         chunks = [self.model.greedy(torch.as_tensor(views[i:i + EVAL_CHUNK], device=self.device)).cpu().numpy()
                   for i in range(0, views.shape[0], EVAL_CHUNK)]

@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 
 from higher_dist.learning.episode import SUCCESS, Episode
-from higher_dist.world.language import MISSION_LEN, parse
+from higher_dist.world.language import parse
+from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
 _ATTR_NAMES = ("color", "type", "shade", "size")
 _MASK64 = (1 << 64) - 1
@@ -40,15 +41,14 @@ def validation_flags(insertion_ids: np.ndarray, seed: int, val_fraction: float) 
 
 
 class GeneratorDataset:
-    def __init__(self, capacity: int, val_fraction: float, seed: int, view_size: int = 7,
-                 mission_len: int = MISSION_LEN):
+    def __init__(self, capacity: int, val_fraction: float, seed: int, spec: WorldSpec = DEFAULT_SPEC):
         if capacity < 1:
             raise ValueError(f"capacity: must be >= 1, got {capacity}")
         if not 0.0 < val_fraction < 1.0:
             raise ValueError(f"val_fraction: must be in (0, 1), got {val_fraction}")
         self.capacity, self.val_fraction, self.seed = int(capacity), float(val_fraction), int(seed)
-        self.views = np.zeros((capacity, view_size, view_size, 4), np.uint8)
-        self.tokens = np.zeros((capacity, mission_len), np.int64)
+        self.views = np.zeros((capacity, *spec.view_shape), np.uint8)
+        self.tokens = np.zeros((capacity, spec.mission_len), np.int64)
         self.is_val = np.zeros(capacity, bool)
         self.inserted = 0  # pairs ever added; also the next pair's insertion number
         self.size = 0

@@ -7,22 +7,22 @@ from collections import deque
 
 import numpy as np
 
+from higher_dist import metrics as m
 from higher_dist.config import Config
 from higher_dist.learning.dqn import DQNLearner
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.rate_limiter import SamplesPerInsertLimiter
 from higher_dist.learning.replay import PrioritizedReplay
-from higher_dist.world.language import VOCAB
+from higher_dist.world.spec import WorldSpec
 
 
 class LearnerCore:
     def __init__(self, cfg: Config, device: str | None = None):
         self.cfg = cfg
+        self.spec = WorldSpec.of(cfg.world)
         self.replay = PrioritizedReplay(cfg.replay, frame_stack=cfg.network.frame_stack,
-                                        n_step=cfg.dqn.n_step, gamma=cfg.dqn.gamma,
-                                        view_size=cfg.world.view_size, seed=cfg.seed)
-        self.dqn = DQNLearner(cfg.network, cfg.dqn, device=device or cfg.device, vocab_size=len(VOCAB),
-                              seed=cfg.seed)
+                                        n_step=cfg.dqn.n_step, gamma=cfg.dqn.gamma, spec=self.spec, seed=cfg.seed)
+        self.dqn = DQNLearner(cfg.network, cfg.dqn, device=device or cfg.device, spec=self.spec, seed=cfg.seed)
         self.limiter = SamplesPerInsertLimiter(cfg.replay.samples_per_insert, cfg.replay.min_size)
         self.frames = 0  # env frames the actors reported (original episodes only)
         self.episodes = 0
@@ -79,13 +79,13 @@ class LearnerCore:
 
     def metrics(self) -> dict[str, float]:
         out = {
-            "frames": self.frames, "updates": self.updates, "episodes": self.episodes,
-            "relabelled_episodes": self.relabelled_episodes,
-            "success_rate_train": round(self.success_rate_train, 4),
-            "replay_size": len(self.replay), "replay_ratio": round(self.limiter.ratio, 3),
+            m.FRAMES: self.frames, m.UPDATES: self.updates, m.EPISODES: self.episodes,
+            m.RELABELLED_EPISODES: self.relabelled_episodes,
+            m.SUCCESS_TRAIN: round(self.success_rate_train, 4),
+            m.REPLAY_SIZE: len(self.replay), m.REPLAY_RATIO: round(self.limiter.ratio, 3),
         }
         for origin, count in self.replay.composition().items():
-            out[f"replay_{origin}"] = int(count)
+            out[m.replay_origin(origin)] = int(count)
         out.update({k: round(float(v), 5) for k, v in self.last_metrics.items()})
         return out
 
@@ -113,14 +113,4 @@ class LearnerCore:
             # Without the replay the ratio restarts from an empty buffer.
             self.limiter.inserted = self.limiter.sampled = 0
 
-
-def relabel_record(m: dict) -> dict:
-    """The metrics record's relabeler fields, from a relabel strategy's `metrics()` (same keys whether
-    the strategy runs in the single-process runner or in the relabeler service)."""
-    return {
-        "relabel_strategy": m.get("strategy"), "generator_val_accuracy": m.get("val_accuracy"),
-        "relabel_dataset_size": m.get("dataset_size"), "relabel_gate_open": m.get("gate_open"),
-        "relabel_accuracy": m.get("relabel_accuracy"), "relabel_unparseable": m.get("unparseable"),
-        "generator_loss": m.get("loss"),
-    }
 

@@ -17,15 +17,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from higher_dist.config import NetworkConfig
-
-# Number of distinct values in each view channel (docs/architecture.md): kind 0..4, color 0..6
-# (0 = none, then 6 colors), shade 0..5, size 0..5.
-VIEW_CHANNEL_VALUES = (5, 7, 6, 6)
-# A cell's 4 values read as one mixed-radix number: its index among all 5*7*6*6 = 1260 possible cells.
-CELL_CODES = int(np.prod(VIEW_CHANNEL_VALUES))
-_CELL_RADIX = tuple(int(np.prod(VIEW_CHANNEL_VALUES[i + 1:])) for i in range(len(VIEW_CHANNEL_VALUES)))
-PAD_ID = 0
-N_ACTIONS = 4
+from higher_dist.world.language import PAD as PAD_ID
+from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
 
 class _SmallTableLookup(torch.autograd.Function):
@@ -66,18 +59,23 @@ class ViewEncoder(nn.Module):
     every cell. Reused by the instruction generator (with `in_frames=1`).
     """
 
-    def __init__(self, embed_dim: int, conv_channels: tuple[int, ...], in_frames: int, view_size: int = 7):
+    def __init__(self, embed_dim: int, conv_channels: tuple[int, ...], in_frames: int,
+                 spec: WorldSpec = DEFAULT_SPEC):
         super().__init__()
         if not conv_channels:
             raise ValueError("conv_channels: needs at least one layer")
         self.embed_dim = embed_dim
         self.in_frames = in_frames
-        self.view_size = view_size
+        self.view_size = view_size = spec.view_size
+        self.channel_values = tuple(spec.channel_values)
+        # A cell's channel values read as one mixed-radix number: its index among all possible cells
+        # (5*7*6*6 = 1260 on the global tables).
+        self.cell_codes = int(np.prod(self.channel_values))
+        self.cell_radix = tuple(int(np.prod(self.channel_values[i + 1:])) for i in range(len(self.channel_values)))
         # Rows: kind values, then color, shade and size values (offsets 0, 5, 12, 18).
-        self.embed = nn.Embedding(sum(VIEW_CHANNEL_VALUES), embed_dim)
+        self.embed = nn.Embedding(sum(self.channel_values), embed_dim)
         # Not persistent: a constant of the encoding, not a weight to publish or checkpoint.
-        self.register_buffer("channel_max", torch.tensor([n - 1 for n in VIEW_CHANNEL_VALUES], dtype=torch.uint8),
-                             persistent=False)
+        self.register_buffer("channel_max", torch.tensor(spec.channel_max, dtype=torch.uint8), persistent=False)
         convs = []
         in_ch, size = in_frames * embed_dim, view_size
         for out_ch in conv_channels:
@@ -95,16 +93,16 @@ class ViewEncoder(nn.Module):
 
         Summing the 4 rows once per table entry (10k floats) instead of once per cell of the batch
         (B*k*49 cells) makes the per-cell work a single lookup."""
-        rows = torch.split(self.embed.weight, VIEW_CHANNEL_VALUES)
+        rows = torch.split(self.embed.weight, self.channel_values)
         kind, color, shade, size = rows
         table = (kind[:, None, None, None] + color[None, :, None, None]
                  + shade[None, None, :, None] + size[None, None, None, :])
-        return table.reshape(CELL_CODES, self.embed_dim)
+        return table.reshape(self.cell_codes, self.embed_dim)
 
     def embed_views(self, views: torch.Tensor) -> torch.Tensor:
         """(B, k, V, V, 4) integer views -> (B, k*E, V, V) float maps (channels-last in memory)."""
         b, k, v, _, c = views.shape
-        if k != self.in_frames or c != len(VIEW_CHANNEL_VALUES):
+        if k != self.in_frames or c != len(self.channel_values):
             raise ValueError(f"views: expected (B, {self.in_frames}, V, V, 4), got {tuple(views.shape)}")
         if views.dtype.is_floating_point or views.dtype.is_complex or views.dtype == torch.bool:
             raise ValueError(f"views: expected an integer dtype (uint8), got {views.dtype}")
@@ -116,8 +114,8 @@ class ViewEncoder(nn.Module):
         # Frames next to the embedding in memory: the lookup then writes (B, V, V, k*E) directly,
         # which the convolution takes as channels-last without a transposing copy.
         cells = views.permute(0, 2, 3, 1, 4).long()
-        code = (cells[..., 0] * _CELL_RADIX[0] + cells[..., 1] * _CELL_RADIX[1]
-                + cells[..., 2] * _CELL_RADIX[2] + cells[..., 3])
+        radix = self.cell_radix
+        code = cells[..., 0] * radix[0] + cells[..., 1] * radix[1] + cells[..., 2] * radix[2] + cells[..., 3]
         x = lookup(code, self.cell_table())
         return x.reshape(b, v, v, k * self.embed_dim).permute(0, 3, 1, 2)
 
@@ -172,16 +170,17 @@ class QNetwork(nn.Module):
     plain linear layer.
     """
 
-    def __init__(self, cfg: NetworkConfig, n_actions: int = N_ACTIONS, vocab_size: int = 40, view_size: int = 7):
+    def __init__(self, cfg: NetworkConfig, spec: WorldSpec = DEFAULT_SPEC):
         super().__init__()
+        n_actions = spec.n_actions
         if cfg.fusion not in ("film", "concat"):
             raise ValueError(f"fusion: must be film or concat, got {cfg.fusion!r}")
         self.cfg = cfg
         self.n_actions = n_actions
         self.fusion = cfg.fusion
         self.dueling = cfg.dueling
-        self.view = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), cfg.frame_stack, view_size)
-        self.text = InstructionEncoder(vocab_size, cfg.word_embed_dim, cfg.text_hidden)
+        self.view = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), cfg.frame_stack, spec)
+        self.text = InstructionEncoder(spec.vocab_size, cfg.word_embed_dim, cfg.text_hidden)
         if self.fusion == "film":
             self.film = nn.Linear(cfg.text_hidden, 2 * self.view.out_channels)
             head_in = self.view.out_dim

@@ -1,6 +1,6 @@
 """Hindsight relabelling strategies: what a failed episode is stored again under.
 
-The paper's methods differ only here (DESIGN.md section 1):
+The paper's methods differ only here (see the table of methods in README.md):
 - `none`    (DQN, DQN+reward): nothing is relabelled;
 - `expert`  (DQN+HER): the picked object, described from ground truth (the expert reads it by design);
 - `noisy`   (DQN+HER noisy): the same with each attribute resampled with probability p;
@@ -22,8 +22,9 @@ from higher_dist.config import Config, GeneratorConfig
 from higher_dist.learning.episode import WRONG_PICK, Episode
 from higher_dist.learning.generator import GeneratorTrainer
 from higher_dist.learning.generator_data import parse_many
-from higher_dist.world.language import VOCAB, expert_tokens, noisy_attrs
+from higher_dist.world.language import expert_tokens, noisy_attrs
 from higher_dist.world.objects import ObjectSpace
+from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
 STRATEGIES = ("none", "expert", "noisy", "learned")
 
@@ -132,11 +133,10 @@ class LearnedRelabel(RelabelStrategy):
 
     name = "learned"
 
-    def __init__(self, cfg: GeneratorConfig, vocab_size: int, seed: int = 0, device: str = "cpu",
-                 view_size: int = 7):
+    def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int = 0, device: str = "cpu"):
         super().__init__(seed)
         self.cfg = cfg
-        self.trainer = GeneratorTrainer(cfg, vocab_size, seed, device=device, view_size=view_size)
+        self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
         self.gated_off = 0  # wrong picks not relabelled because the gate was closed
         self._steps_since_eval = 0
@@ -162,18 +162,19 @@ class LearnedRelabel(RelabelStrategy):
         return copies
 
     def train(self, budget_steps: int | None = None) -> dict[str, float]:
-        """Train in rounds of `train_steps_per_round` steps; evaluate every `rounds_per_eval` rounds.
+        """Take `budget_steps` gradient steps (the pace in learning/agent.GeneratorPace decides how many);
+        evaluate on the validation pairs every `eval_every_updates` steps. Returns {} when nothing ran.
 
         Training waits for a first full batch of training pairs: a handful of pairs would only be
         memorised, and the CPU is better spent elsewhere until then.
         """
-        steps = self.cfg.train_steps_per_round if budget_steps is None else int(budget_steps)
+        steps = self.cfg.eval_every_updates if budget_steps is None else int(budget_steps)
         if steps <= 0 or self.trainer.dataset.n_train < self.cfg.batch_size:
             return {}
         loss = self.trainer.train_steps(steps)
         self._steps_since_eval += steps
         out = {"loss": loss}
-        if self._steps_since_eval >= self.cfg.rounds_per_eval * self.cfg.train_steps_per_round:
+        if self._steps_since_eval >= self.cfg.eval_every_updates:
             self._steps_since_eval = 0
             out.update({f"val_{k}": v for k, v in self.trainer.evaluate().items()})
         return out
@@ -211,5 +212,5 @@ def make_relabeler(cfg: Config, seed: int, space: ObjectSpace | None = None) -> 
     if kind == "noisy":
         return NoisyExpertRelabel(space if space is not None else ObjectSpace(cfg.world), cfg.relabel.noise_p, seed)
     if kind == "learned":
-        return LearnedRelabel(cfg.generator, len(VOCAB), seed, device=cfg.device, view_size=cfg.world.view_size)
+        return LearnedRelabel(cfg.generator, WorldSpec.of(cfg.world), seed, device=cfg.device)
     raise ValueError(f"relabel.strategy: unknown strategy {kind!r}; choose one of {', '.join(STRATEGIES)}")

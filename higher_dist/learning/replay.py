@@ -30,6 +30,7 @@ from higher_dist.config import ReplayConfig
 from higher_dist.learning.episode import OUTCOME_NAMES, Episode
 from higher_dist.learning.exploration import linear_schedule
 from higher_dist.learning.sum_tree import SumTree
+from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
 __all__ = ["PrioritizedReplay", "SumTree", "TransitionBatch", "ORIGINS"]
 
@@ -56,7 +57,7 @@ class TransitionBatch:
 
 class PrioritizedReplay:
     def __init__(self, cfg: ReplayConfig, frame_stack: int, n_step: int, gamma: float,
-                 view_size: int = 7, mission_len: int = 10, seed: int = 0):
+                 spec: WorldSpec = DEFAULT_SPEC, seed: int = 0):
         if cfg.capacity < 2:
             raise ValueError(f"replay capacity must be >= 2 slots, got {cfg.capacity}")
         if not 1 <= frame_stack <= 256:  # stack reach is stored as uint8
@@ -70,8 +71,9 @@ class PrioritizedReplay:
         self.frame_stack = int(frame_stack)
         self.n_step = int(n_step)
         self.gamma = float(gamma)
-        self.view_size = int(view_size)
-        self.mission_len = int(mission_len)
+        self.spec = spec
+        self.view_size = int(spec.view_size)
+        self.mission_len = int(spec.mission_len)
         c, v = self.capacity, self.view_size
 
         # Per slot.
@@ -100,7 +102,6 @@ class PrioritizedReplay:
         self._next_serial = 0  # serial of the next episode
         self._size = 0  # sampleable transitions
         self._counts = np.zeros(len(ORIGINS), dtype=np.int64)
-        self._transitions_added = 0
         self._stack_back = np.arange(self.frame_stack - 1, -1, -1, dtype=np.int64)  # k-1 .. 0
         self._gamma_pow = self.gamma ** np.arange(self.n_step + 1, dtype=np.float64)
 
@@ -160,7 +161,6 @@ class PrioritizedReplay:
         self._writes += n_slots
         self._counts[origin] += steps
         self._size += steps
-        self._transitions_added += steps
 
     def _n_step_targets(self, rewards: np.ndarray, terminated: bool):
         """Per slot: n-step return, discount and offset to the next state (the final slot gets 0s).
@@ -275,11 +275,6 @@ class PrioritizedReplay:
     def __len__(self) -> int:
         return self._size
 
-    @property
-    def transitions_added(self) -> int:
-        """Transitions ever inserted (for a samples-per-insert rate limiter)."""
-        return self._transitions_added
-
     def composition(self) -> dict[str, int]:
         """Sampleable transitions held, by the origin of their episode."""
         return {name: int(count) for name, count in zip(ORIGINS, self._counts)}
@@ -293,7 +288,7 @@ class PrioritizedReplay:
 
     _ARRAYS = ("_frames", "_action", "_return", "_discount", "_next_offset", "_history", "_episode",
                "_generation", "_ep_start", "_ep_slots", "_ep_origin", "_ep_mission", "_counts")
-    _INTS = ("_cursor", "_writes", "_first_live", "_next_serial", "_size", "_transitions_added")
+    _INTS = ("_cursor", "_writes", "_first_live", "_next_serial", "_size")
 
     def state_dict(self) -> dict:
         """A flat dict of numpy arrays and Python numbers (np.savez-able without pickle).

@@ -1,8 +1,9 @@
 """The single-process runner: actors, relabeler and learner as one synchronous loop.
 
-It drives exactly the components the cluster's roles wrap (EpisodeCollector, a relabel strategy,
-LearnerCore), so a bug seen in the cluster can be reproduced here, under a debugger, deterministically.
-Policy weights are copied from the learner every `cfg.weights_every` updates, as the cluster publishes.
+Every part comes from `AgentBuilder`, the one the cluster's roles use, with the same seeds and cadences
+(epsilon driven by the learner's frame count, the generator's training pace per env frame, evaluation
+every `cfg.eval.every_frames`, policy refresh every `cfg.weights_every` updates), so a bug seen in the
+cluster can be reproduced here, under a debugger, deterministically.
 """
 from __future__ import annotations
 
@@ -12,31 +13,25 @@ from typing import Callable
 import numpy as np
 import torch
 
+from higher_dist import metrics as m
 from higher_dist.config import Config
-from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, act, evaluate_goal_sets
-from higher_dist.learning.exploration import actor_epsilons
-from higher_dist.learning.learner_core import LearnerCore, relabel_record
-from higher_dist.learning.relabel import make_relabeler
-
-GENERATOR_ROUND_FRAMES = 1000
+from higher_dist.learning.acting import act
+from higher_dist.learning.agent import AgentBuilder, train_generator
 
 
 class SingleProcessRunner:
     def __init__(self, cfg: Config, log: Callable[[dict], None] | None = None):
         torch.manual_seed(cfg.seed)
         self.cfg = cfg
+        self.agent = AgentBuilder(cfg)
         self.log = log or (lambda record: None)
-        self.core = LearnerCore(cfg)
-        self.relabeler = make_relabeler(cfg, seed=cfg.seed + 1)
-        self.collectors = [
-            EpisodeCollector(cfg.world, cfg.envs_per_actor, cfg.network.frame_stack,
-                             seed=cfg.seed * 1000 + 17 * (i + 1), actor_id=i)
-            for i in range(cfg.actors)
-        ]
-        self.policy = TorchQFunction(cfg.network, device="cpu")
-        self.rng = np.random.default_rng(cfg.seed)
+        self.core = self.agent.learner_core()
+        self.relabeler = self.agent.relabeler()
+        self.pace = self.agent.generator_pace()
+        self.collectors = [self.agent.collector(i) for i in range(cfg.actors)]
+        self.rngs = [self.agent.exploration_rng(i) for i in range(cfg.actors)]
+        self.policy = self.agent.policy()
         self.weights_version = 0
-        self._frames_since_generator_round = 0
         self._sync_policy()
 
     def _sync_policy(self) -> None:
@@ -48,28 +43,28 @@ class SingleProcessRunner:
     def run(self, frames: int | None = None, metrics_every: int = 10_000) -> dict:
         budget = frames if frames is not None else self.cfg.frames
         frames_done = 0
-        next_metrics, next_eval = metrics_every, self.cfg.eval.every_frames
+        next_metrics = metrics_every
+        evaluation = self.agent.evaluation_cadence()
         start = time.perf_counter()
         record: dict = {}
+        last_eval: dict = {}
         while frames_done < budget:
             for i, collector in enumerate(self.collectors):
-                eps = actor_epsilons(self.cfg.exploration, i, self.cfg.actors, collector.n_envs,
-                                     self.core.frames)
-                episodes = act(collector, self.policy, eps, self.rng)
+                eps = self.agent.epsilons(i, collector.n_envs, self.core.frames)
+                episodes = act(collector, self.policy, eps, self.rngs[i])
                 frames_done += collector.n_envs
-                self._frames_since_generator_round += collector.n_envs
                 if episodes:
                     self._handle(episodes)
             before = self.core.updates
             self.core.train_available(max_updates=10_000)
-            if self.core.updates // self.cfg.weights_every != before // self.cfg.weights_every:
+            if self.agent.weights_due(before, self.core.updates):
                 self._sync_policy()
+            if evaluation.due(self.core.frames):
+                last_eval = self.agent.evaluate(self.policy, self.core.frames)
             if frames_done >= next_metrics or frames_done >= budget:
                 next_metrics += metrics_every
                 record = self.metrics(frames_done, time.perf_counter() - start)
-                if frames_done >= next_eval:
-                    next_eval += self.cfg.eval.every_frames
-                    record.update(self.evaluate())
+                record.update(last_eval)
                 self.log(record)
         return record
 
@@ -77,23 +72,20 @@ class SingleProcessRunner:
         self.relabeler.observe(episodes)
         copies = self.relabeler.relabel(episodes)
         self.core.add_episodes(episodes + copies)
-        # One generator round per GENERATOR_ROUND_FRAMES env frames, as the relabeler service paces it.
-        if self._frames_since_generator_round >= GENERATOR_ROUND_FRAMES:
-            self._frames_since_generator_round = 0
-            self.relabeler.train(self.cfg.generator.train_steps_per_round)
+        self.pace.add_frames(sum(ep.length for ep in episodes))
+        train_generator(self.relabeler, self.pace)
 
     def evaluate(self) -> dict:
-        return evaluate_goal_sets(self.policy, self.cfg, seed=self.cfg.seed + 10_000 + self.core.updates)
+        return self.agent.evaluate(self.policy, self.core.frames)
 
     def metrics(self, frames_done: int, elapsed: float) -> dict:
         record = self.core.metrics()
-        record.update(relabel_record(self.relabeler.metrics()))
+        record.update(m.relabel_record(self.relabeler.metrics()))
         record.update({
-            "frames": frames_done, "rejected_messages": 0, "preset": self.cfg.preset,
-            "world": self.cfg.world.name, "frames_budget": self.cfg.frames,
-            "frames_per_s": round(frames_done / max(elapsed, 1e-9), 1),
-            "updates_per_s": round(self.core.updates / max(elapsed, 1e-9), 2),
-            "epsilon_mean": float(np.mean(actor_epsilons(self.cfg.exploration, 0, self.cfg.actors,
-                                                         self.cfg.envs_per_actor, self.core.frames))),
+            m.FRAMES: frames_done, m.REJECTED: 0, m.PRESET: self.cfg.preset,
+            m.WORLD: self.cfg.world.name, m.FRAMES_BUDGET: self.cfg.frames,
+            m.FRAMES_PER_S: round(frames_done / max(elapsed, 1e-9), 1),
+            m.UPDATES_PER_S: round(self.core.updates / max(elapsed, 1e-9), 2),
+            m.EPSILON_MEAN: float(np.mean(self.agent.epsilons(0, self.cfg.envs_per_actor, self.core.frames))),
         })
         return record

@@ -27,6 +27,8 @@ from higher_dist.wire.schema import PROTOCOL_VERSION
 
 # The learner's answer to a peer it does not know (it restarted since that peer's hello).
 REJOIN = "unknown peer: say hello first"
+# A role's dropped messages travel in its stats as reject_<reason>: count; the learner sums them by reason.
+REJECT_STAT_PREFIX = "reject_"
 
 
 class Refused(RuntimeError):
@@ -110,7 +112,8 @@ class ControlClient:
                                              if v is not None and math.isfinite(float(v))}})
 
     def stats(self, values: dict[str, Any]) -> None:
-        values = dict(values, restarts=self.restarts, rejected_messages=self.rejects.total)
+        values = dict(values, restarts=self.restarts, rejected_messages=self.rejects.total,
+                      **{REJECT_STAT_PREFIX + reason: n for reason, n in self.rejects.counts().items()})
         # The wire refuses NaN/inf; a metric that has none yet travels as nil.
         values = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in values.items()}
         self.send("stats", {"role": self.role, "id": self.index, "values": values})

@@ -1,9 +1,10 @@
 """The live dashboard: subscribe to the learner's telemetry and redraw with rich.
 
-The learner PUBlishes one frame per record, a msgpack-encoded dict, several times a second. The
-dashboard only ever wants the newest one, so the SUB socket is CONFLATEd with a tiny high-water mark:
-a slow terminal can never make messages pile up anywhere. A frame that does not decode to a dict is
-counted and ignored; a record {"type": "stop"} ends the dashboard (the learner sends it on shutdown).
+The learner PUBlishes one `telemetry` message (wire/schema.py; one frame, checked by the codec like any
+other message) per record, several times a second. The dashboard only ever wants the newest one, so the
+SUB socket is CONFLATEd with a tiny high-water mark: a slow terminal can never make messages pile up
+anywhere. A frame that does not decode to a telemetry message is counted and ignored; a `stop` message
+ends the dashboard (the learner sends it on shutdown).
 
 Endpoints: a dashboard needs only the learner's control endpoint; `telemetry_endpoint_for` asks
 launch/topology.py (the only place that knows the port layout) for the telemetry channel's. Under --keys
@@ -14,13 +15,13 @@ from __future__ import annotations
 import time
 from typing import Any
 
-import msgpack
 import zmq
 from rich.console import Console
 from rich.live import Live
 
 from higher_dist.launch.channels import open_channel
 from higher_dist.roles.dashboard_view import DashboardState, render
+from higher_dist.wire import codec
 from higher_dist.wire.security import Security
 
 MAX_FRAME_BYTES = 8 << 20  # a telemetry record is a few kB; refuse to buffer anything absurd
@@ -34,16 +35,20 @@ def telemetry_endpoint_for(control_endpoint: str) -> str:
     return Endpoints.from_control(control_endpoint).telemetry
 
 
+STOP = {"type": "stop"}  # what decode_record returns for the learner's stop message
+
+
 def decode_record(frame: bytes) -> dict[str, Any] | None:
-    """The record in one telemetry frame, or None for anything that is not a msgpack map."""
-    # unpackb() has no max_buffer_size (only msgpack.Unpacker does): bound the frame ourselves.
+    """The record in one telemetry frame, STOP for a stop message, or None for anything else."""
     if len(frame) > MAX_FRAME_BYTES:
         return None
     try:
-        obj = msgpack.unpackb(frame, raw=False, strict_map_key=False)
-    except Exception:  # msgpack raises several unrelated types for garbage; all mean "ignore it"
+        msg = codec.decode([frame])
+    except codec.WireError:
         return None
-    return obj if isinstance(obj, dict) else None
+    if msg.type == "stop":
+        return STOP
+    return msg.fields["record"] if msg.type == "telemetry" else None
 
 
 def run_dashboard(telemetry_endpoint: str, refresh_per_s: float = 4.0, stop_after_s: float | None = None,

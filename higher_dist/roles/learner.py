@@ -2,8 +2,15 @@
 
 A short loop around `LearnerCore`: answer control messages (hello -> welcome with the run's config and
 endpoints), take episode batches while the samples-per-insert ratio allows (otherwise the sockets'
-high-water marks push back on the relabeler and the actors), run DQN updates, publish weights, write
-metrics and telemetry, checkpoint. Ends when the frame budget is reached or on SIGTERM/SIGINT.
+high-water marks push back on the relabeler and the actors), run DQN updates, publish weights, start
+greedy evaluations on a background thread, write metrics and telemetry, checkpoint. Ends when the frame
+budget is reached or on SIGTERM/SIGINT.
+
+No input can end the loop: every incoming episode is checked against the run's `WorldSpec` where it is
+unpacked (wire/episodes.py) and dropped, counted by reason, when it fails; an unexpected exception while
+handling one message is logged with the message's type and sender, counted as `handler_error`, and the
+loop goes on. Relabelled episodes are accepted only in messages whose sender is the relabeler: an actor
+never relabels, so such a claim from anyone else is dropped as `relabel_origin`.
 """
 from __future__ import annotations
 
@@ -13,24 +20,24 @@ import signal
 import socket
 import time
 
-import msgpack
 import numpy as np
 import torch
 import zmq
 
 from higher_dist import config as config_mod
+from higher_dist import metrics as m
 from higher_dist.config import Config
 from higher_dist.launch.channels import open_channel
 from higher_dist.launch.topology import Endpoints
-from higher_dist.learning.learner_core import LearnerCore, relabel_record
-from higher_dist.roles.client import REJOIN
+from higher_dist.learning.agent import AgentBuilder
+from higher_dist.roles.client import REJECT_STAT_PREFIX, REJOIN
+from higher_dist.roles.evaluator import BackgroundEvaluator
 from higher_dist.roles.registry import NoSlot, RateMeter, RoleRegistry
-from higher_dist.rundir import RunDir, plain_number
+from higher_dist.rundir import RunDir, plain_record
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.security import Security
 from higher_dist.wire.episodes import unpack_episodes
 from higher_dist.wire.schema import PROTOCOL_VERSION
-from higher_dist.world.language import VOCAB
 
 log = logging.getLogger("higher.learner")
 TELEMETRY_EVERY_S = 0.5
@@ -44,14 +51,16 @@ class LearnerRole:
         torch.manual_seed(cfg.seed)
         self.cfg, self.endpoints = cfg, endpoints
         self.rd = RunDir(run_dir, tensorboard=cfg.tensorboard)
-        self.core = LearnerCore(cfg)
+        self.agent = AgentBuilder(cfg)
+        self.core = self.agent.learner_core()
+        self.evaluator = BackgroundEvaluator(self.agent)
         self.registry = RoleRegistry()
         self.rejects = sockets.RejectCounter()
         self.relabeler_endpoint: str | None = None
         self.pending_hellos: list[tuple[bytes, int]] = []
         self.weights_version = 0
         self.stop_reason = ""
-        self.eval: dict[str, float] = {}
+        self.handler_errors = 0
         self.started = time.time()
         self.updates_rate = RateMeter()
         if resume:
@@ -59,6 +68,7 @@ class LearnerRole:
         elif self.rd.checkpoint_path("learner").exists():
             raise ValueError(f"--run-dir {self.rd.path} already holds a run: add --resume to continue it, "
                              "or choose another --run-dir")
+        self.evaluation = self.agent.evaluation_cadence(self.core.frames)
         self.rd.write_config(cfg)
         ctx = zmq.Context.instance()
         # With keys, every socket is a CURVE server and only clients on the allow-list get through.
@@ -169,7 +179,7 @@ class LearnerRole:
                 return
             routed = sockets.recv_routed(self.control, 0, self.rejects, "control", self._refuse_version)
             if routed is not None:
-                self.handle_control(*routed)
+                self._guarded(self.handle_control, routed[1], *routed)
 
     def poll_experience(self, limit: int = 4) -> None:
         for _ in range(limit):
@@ -183,18 +193,38 @@ class LearnerRole:
             if msg.type != "episodes":
                 self.rejects.add("unexpected_type")
                 continue
-            try:
-                episodes = unpack_episodes(msg, max_steps=self.cfg.world.max_steps,
-                                           view_size=self.cfg.world.view_size, vocab_size=len(VOCAB))
-            except codec.WireError as e:
-                self.rejects.add(e.reason)
-                continue
-            self.core.add_episodes(episodes)
+            self._guarded(self.take_episodes, msg, msg)
+
+    def take_episodes(self, msg) -> None:
+        try:
+            episodes = unpack_episodes(
+                msg, self.core.spec, reject=lambda reason: self.rejects.add(reason, where="experience"),
+                allow_relabelled=msg.sender == "relabeler", n_actors=self.cfg.actors,
+                max_weights_version=self.weights_version)
+        except codec.WireError as e:
+            self.rejects.add(e.reason, e.detail, "experience")
+            return
+        self.core.add_episodes(episodes)
+
+    def _guarded(self, handler, msg, *args) -> None:
+        """Run one message's handler; an unexpected exception is logged with the message's type and
+        sender, counted, and the loop goes on (no peer can end this process)."""
+        try:
+            handler(*args)
+        except Exception as exc:  # noqa: BLE001 - the point is to survive anything one message does
+            self.handler_errors += 1
+            self.rejects.add("handler_error", f"{msg.type} from {msg.sender!r}: {type(exc).__name__}: {exc}")
+            log.exception("handling a %s message from %r failed; dropped it", msg.type, msg.sender)
 
     # -- outputs ------------------------------------------------------------------------------------
     def publish_weights(self) -> None:
         self.weights_version = self.core.updates
-        self.weights.send(codec.encode_weights(self.weights_version, self.core.dqn.weights_numpy()))
+        self.weights.send(codec.encode_weights(self.weights_version, self.core.dqn.weights_numpy(),
+                                               frames=self.core.frames))
+
+    def maybe_evaluate(self) -> None:
+        if self.evaluation.due(self.core.frames):
+            self.evaluator.start(self.core.dqn.weights_numpy(), self.core.frames)
 
     def _own_row(self) -> dict:
         return {"role": "learner", "id": 0, "host": socket.gethostname(), "pid": os.getpid(), "state": "alive",
@@ -211,19 +241,24 @@ class LearnerRole:
         actor_fps = [row["frames_per_s"] or 0.0 for row in actor_rows if row["state"] == "alive"]
         lags = [row["weights_lag"] for row in actor_rows if row["weights_lag"] is not None]
         eps = [i.stats["epsilon_mean"] for i in actors if i.stats.get("epsilon_mean") is not None]
+        by_reason = self.rejects.counts()
+        for info in self.registry.roles.values():  # the other roles report theirs as reject_<reason>
+            for key, value in info.stats.items():
+                if key.startswith(REJECT_STAT_PREFIX) and isinstance(value, (int, float)):
+                    reason = key[len(REJECT_STAT_PREFIX):]
+                    by_reason[reason] = by_reason.get(reason, 0) + int(value)
         r.update({
-            "elapsed_s": round(elapsed, 1), "preset": self.cfg.preset, "world": self.cfg.world.name,
-            "frames_budget": self.cfg.frames, "weights_version": self.weights_version,
-            "frames_per_s": round(sum(actor_fps), 1), "updates_per_s": round(self.updates_rate(self.core.updates), 2),
-            "weights_lag_mean": round(float(np.mean(lags)), 1) if lags else None,
-            "rejected_messages": self.rejects.total + sum(int(i.stats.get("rejected_messages", 0) or 0)
-                                                          for i in self.registry.roles.values()),
-            "learner_rejected": self.rejects.total,
-            **relabel_record(relabeler), "relabels_per_s": relabeler.get("relabels_per_s"),
-            "epsilon_mean": round(float(np.mean(eps)), 4) if eps else None,
-            **self.eval, "roles": roles,
+            m.ELAPSED_S: round(elapsed, 1), m.PRESET: self.cfg.preset, m.WORLD: self.cfg.world.name,
+            m.FRAMES_BUDGET: self.cfg.frames, m.WEIGHTS_VERSION: self.weights_version,
+            m.FRAMES_PER_S: round(sum(actor_fps), 1), m.UPDATES_PER_S: round(self.updates_rate(self.core.updates), 2),
+            m.WEIGHTS_LAG_MEAN: round(float(np.mean(lags)), 1) if lags else None,
+            m.REJECTED: sum(by_reason.values()), m.LEARNER_REJECTED: self.rejects.total,
+            m.REJECTS_BY_REASON: by_reason, m.HANDLER_ERRORS: self.handler_errors,
+            **m.relabel_record(relabeler), m.RELABELS_PER_S: relabeler.get("relabels_per_s"),
+            m.EPSILON_MEAN: round(float(np.mean(eps)), 4) if eps else None,
+            **self.evaluator.latest(), m.ROLES: roles,
         })
-        return r
+        return plain_record(r)
 
     # -- loop ---------------------------------------------------------------------------------------
     def run(self) -> int:
@@ -244,14 +279,15 @@ class LearnerRole:
                 before = self.core.updates
                 self.core.train_available(max_updates=4)
                 now = time.time()
-                crossed = self.core.updates // self.cfg.weights_every != before // self.cfg.weights_every
-                if crossed or now - last_weights > WEIGHTS_REPUBLISH_S:
+                if self.agent.weights_due(before, self.core.updates) or now - last_weights > WEIGHTS_REPUBLISH_S:
                     self.publish_weights()
                     last_weights = now
+                self.maybe_evaluate()
                 if now - last_tel > TELEMETRY_EVERY_S:
                     last_tel = now
                     record = self.record()
-                    self.telemetry.send(msgpack.packb(record, default=plain_number), flags=zmq.NOBLOCK)
+                    self.telemetry.send(codec.encode("telemetry", {"record": record}, sender="learner")[0],
+                                        flags=zmq.NOBLOCK)
                     if now - last_metrics > self.cfg.stats_every_s:
                         last_metrics = now
                         self.rd.append_metrics(record)
@@ -267,9 +303,14 @@ class LearnerRole:
         for identity in self.registry.identities():
             self._send(identity, "stop", {"reason": self.stop_reason or "learner exiting"})
         try:
-            self.telemetry.send(msgpack.packb({"type": "stop"}), flags=zmq.NOBLOCK)
+            self.telemetry.send(codec.encode("stop", {"reason": self.stop_reason or "learner exiting"},
+                                             sender="learner")[0], flags=zmq.NOBLOCK)
         except zmq.ZMQError:
             pass
+        self.evaluator.wait()
+        if self.core.frames >= self.cfg.frames:  # the run's last point: greedy success at its end
+            self.evaluator.start(self.core.dqn.weights_numpy(), self.core.frames)
+            self.evaluator.wait()
         record = self.record()
         self.rd.append_metrics(record)
         self.checkpoint()

@@ -105,10 +105,6 @@ class RoleRegistry:
             })
         return rows
 
-    def alive(self, role: str) -> list[RoleInfo]:
-        now = time.time()
-        return [i for (r, _), i in self.roles.items()
-                if r == role and not i.stopped and now - i.last_seen <= self.dead_after_s]
 
 
 class RateMeter:

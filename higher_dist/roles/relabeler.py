@@ -1,10 +1,14 @@
 """The relabeler role: the instruction generator as a service between the actors and the learner.
 
-Episodes come in on its PULL socket; successes feed the generator's dataset; wrong picks are relabelled
-by the preset's strategy (learned generator behind its gate, expert, noisy expert or none); originals and
-copies go on to the learner. The generator trains in short rounds between messages, so the stream never
-waits long for it. When the learner pushes back (its socket is full) the relabeler stops reading, which
-in turn pushes back on the actors. Its generator and dataset are checkpointed and resumed.
+Episodes come in on its PULL socket and are checked against the run's world where they are unpacked
+(an actor never sends relabelled copies, so one that claims to is dropped); successes feed the
+generator's dataset; wrong picks are relabelled by the preset's strategy (learned generator behind its
+gate, expert, noisy expert or none); originals and copies go on to the learner. The generator trains at
+the pace the config sets per env frame (`generator.updates_per_kframe`, enforced by the builder's
+`GeneratorPace` exactly as in the single-process runner), in short slices between messages; when it
+falls behind by more than a few slices the relabeler stops reading until it has caught up, which pushes
+back on the actors instead of letting the pace depend on the machine. When the learner pushes back (its
+socket is full) the relabeler stops reading too. Its generator, dataset and pace are checkpointed.
 """
 from __future__ import annotations
 
@@ -15,94 +19,125 @@ from pathlib import Path
 import zmq
 
 from higher_dist.launch.channels import open_channel
-from higher_dist.learning.relabel import make_relabeler
+from higher_dist.learning.agent import AgentBuilder, train_generator
 from higher_dist.roles.client import start_role
 from higher_dist.rundir import RunDir
 from higher_dist.wire import codec, sockets
-from higher_dist.wire.security import Security
 from higher_dist.wire.episodes import pack_episodes, unpack_episodes
-from higher_dist.world.language import VOCAB
+from higher_dist.wire.security import Security
 
 log = logging.getLogger("higher.relabeler")
 CHECKPOINT_EVERY_S = 60.0  # at most; cfg.checkpoint_every_s when that is shorter
-TRAIN_SLICE = 5  # generator steps between two looks at the sockets
+TRAIN_SLICE = 5  # generator updates between two looks at the sockets
+MAX_BACKLOG = 8 * TRAIN_SLICE  # owed updates beyond which no new episodes are read
 WAIT_MS = 20  # longest wait on a socket before looking at control, training and stats again
-IDLE_TRAIN_PER_S = 20.0  # cap on generator steps/s when there is nothing else to do (2 shared cores)
+
+
+class Relabeler:
+    """What the service does with one message, apart from the sockets (so a bad message's damage is
+    confined to `handle`, which the loop guards)."""
+
+    def __init__(self, agent: AgentBuilder, rejects: sockets.RejectCounter):
+        self.agent, self.rejects = agent, rejects
+        self.strategy = agent.relabeler()
+        self.pace = agent.generator_pace()
+        self.trainable = self.strategy.name == "learned"  # only the generator has anything to train
+        self.received = self.relabelled = 0
+
+    def handle(self, msg) -> list | None:
+        """Frames to forward to the learner for one `episodes` message, or None if nothing survives."""
+        try:
+            episodes = unpack_episodes(msg, self.agent.spec, reject=lambda r: self.rejects.add(r, where="episodes"),
+                                       allow_relabelled=False, n_actors=self.agent.cfg.actors)
+        except codec.WireError as e:
+            self.rejects.add(e.reason, e.detail, "episodes")
+            return None
+        if not episodes:
+            return None
+        self.received += len(episodes)
+        self.strategy.observe(episodes)
+        copies = self.strategy.relabel(episodes)
+        self.relabelled += len(copies)
+        if self.trainable:
+            self.pace.add_frames(sum(ep.length for ep in episodes))
+        fields, arrays = pack_episodes(episodes + copies)
+        return codec.encode("episodes", fields, arrays, sender="relabeler")
+
+    def train_slice(self) -> None:
+        if self.trainable:
+            train_generator(self.strategy, self.pace, TRAIN_SLICE)
+
+    @property
+    def behind(self) -> bool:
+        return self.trainable and self.pace.owed > MAX_BACKLOG
+
+    def state_dict(self) -> dict:
+        return {**self.strategy.state_dict(), "pace": self.pace.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        if "pace" in state:
+            self.pace.load_state_dict(state.pop("pace"))
+        self.strategy.load_state_dict(state)
 
 
 def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = False, bind_host: str | None = None,
                   security: Security | None = None, threads: int | None = None, advertise: str | None = None) -> int:
     client, cfg, endpoints, stop = start_role(learner, "relabeler", 0, security, threads)
-    strategy = make_relabeler(cfg, seed=cfg.seed + 1)
-    trainable = strategy.name == "learned"  # only the generator has anything to train
+    service = Relabeler(AgentBuilder(cfg), client.rejects)
     rd = RunDir(state_dir or Path("runs") / "relabeler")
     if resume:
         state = rd.load_checkpoint("relabeler")
         if state is not None:
-            strategy.load_state_dict(state)
+            service.load_state_dict(state)
             log.info("resumed the relabeler's generator and dataset from %s", rd.checkpoint_path("relabeler"))
     ctx = zmq.Context.instance()
     episodes_endpoint = advertise or endpoints.episodes
     # A CURVE server of its own: the security object starts this process's authenticator on first bind.
     inbox = open_channel(ctx, "episodes", "bind", episodes_endpoint, client.security, bind_host)
-    outbox = open_channel(ctx, "experience", "connect", endpoints.experience, client.security)
+    outbox = sockets.PendingSend(open_channel(ctx, "experience", "connect", endpoints.experience, client.security))
     client.send("register", {"role": "relabeler", "endpoint": episodes_endpoint})
-    pending, received, relabelled = None, 0, 0
-    last_stats = last_ckpt = last_train = time.time()
+    last_stats = last_ckpt = time.time()
     relabels_window = (time.time(), 0)
-    relabels_per_s = 0.0
+    handler_errors = 0
     try:
         while not stop and not client.poll():
             # Wait, briefly, rather than spin: a full outbox is the learner holding its replay ratio.
-            if pending is not None and outbox.poll(WAIT_MS, zmq.POLLOUT):
-                try:
-                    outbox.send_multipart(pending, flags=zmq.NOBLOCK, copy=False)
-                    pending = None
-                except zmq.Again:
-                    pass
+            outbox.flush(WAIT_MS)
             msg = None
-            if pending is None:
-                msg = sockets.recv_message(inbox, WAIT_MS, client.rejects)
+            if not outbox.busy and not service.behind:
+                msg = sockets.recv_message(inbox, WAIT_MS, client.rejects, "episodes")
             if msg is not None and msg.type == "episodes":
                 try:
-                    episodes = unpack_episodes(msg, max_steps=cfg.world.max_steps,
-                                               view_size=cfg.world.view_size, vocab_size=len(VOCAB))
-                except codec.WireError as e:
-                    client.rejects.add(e.reason)
-                    episodes = []
-                if episodes:
-                    received += len(episodes)
-                    strategy.observe(episodes)
-                    copies = strategy.relabel(episodes)
-                    relabelled += len(copies)
-                    fields, arrays = pack_episodes(episodes + copies)
-                    pending = codec.encode("episodes", fields, arrays, sender="relabeler")
+                    frames = service.handle(msg)
+                    if frames is not None:
+                        outbox.put(frames)
+                except Exception as exc:  # noqa: BLE001 - no message may end the service
+                    handler_errors += 1
+                    client.rejects.add("handler_error", f"episodes from {msg.sender!r}: {type(exc).__name__}: {exc}")
+                    log.exception("handling an episodes message from %r failed; dropped it", msg.sender)
             elif msg is not None:
                 client.rejects.add("unexpected_type")
+            service.train_slice()
             now = time.time()
-            # Train between messages; when idle, at a capped rate so actors and learner keep the CPU.
-            if trainable and (msg is not None or now - last_train > TRAIN_SLICE / IDLE_TRAIN_PER_S):
-                strategy.train(TRAIN_SLICE)
-                last_train = now
-            client.heartbeat({"episodes": received, "relabelled": relabelled})
+            client.heartbeat({"episodes": service.received, "relabelled": service.relabelled})
             if now - last_stats > cfg.stats_every_s:
                 t_w, n_w = relabels_window
-                relabels_per_s = (relabelled - n_w) / max(now - t_w, 1e-9)
-                relabels_window = (now, relabelled)
-                m = strategy.metrics()
+                relabels_per_s = (service.relabelled - n_w) / max(now - t_w, 1e-9)
+                relabels_window = (now, service.relabelled)
                 client.send("register", {"role": "relabeler", "endpoint": episodes_endpoint})
-                client.stats({"episodes": received, "relabelled": relabelled,
-                              "relabels_per_s": round(relabels_per_s, 2), **_flat(m)})
+                client.stats({"episodes": service.received, "relabelled": service.relabelled,
+                              "relabels_per_s": round(relabels_per_s, 2), "handler_errors": handler_errors,
+                              "generator_updates_owed": service.pace.owed, **_flat(service.strategy.metrics())})
                 last_stats = now
             if now - last_ckpt > min(CHECKPOINT_EVERY_S, cfg.checkpoint_every_s):
-                rd.save_checkpoint("relabeler", strategy.state_dict())
+                rd.save_checkpoint("relabeler", service.state_dict())
                 last_ckpt = now
     finally:
-        rd.save_checkpoint("relabeler", strategy.state_dict())
+        rd.save_checkpoint("relabeler", service.state_dict())
         inbox.close(linger=0)
-        outbox.close(linger=500)
+        outbox.socket.close(linger=500)
         client.close()
-    log.info("relabeler stopped: %d episodes in, %d relabelled", received, relabelled)
+    log.info("relabeler stopped: %d episodes in, %d relabelled", service.received, service.relabelled)
     return 0
 
 

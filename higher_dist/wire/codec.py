@@ -76,10 +76,12 @@ def encode(msg_type: str, fields: Mapping[str, Any] | None = None, arrays: Mappi
     return [header] + [_byte_view(arr) for _, arr in wire_arrays]
 
 
-def encode_weights(version: int, arrays: Mapping[str, np.ndarray], sender: str = "", seq: int = 0) -> bytes:
-    """One frame carrying a weights version and named float32 arrays (for a CONFLATE subscriber)."""
+def encode_weights(version: int, arrays: Mapping[str, np.ndarray], sender: str = "", seq: int = 0,
+                   frames: int = 0) -> bytes:
+    """One frame carrying a weights version, the learner's frame count and named float32 arrays (for a
+    CONFLATE subscriber)."""
     as_float = {name: np.asarray(arr, dtype=np.float32) for name, arr in arrays.items()}
-    return encode("weights", {"version": version}, as_float, sender, seq)[0]
+    return encode("weights", {"version": version, "frames": int(frames)}, as_float, sender, seq)[0]
 
 
 def _contiguous(arr: Any) -> np.ndarray:

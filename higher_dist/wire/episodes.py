@@ -9,8 +9,12 @@ One `episodes` message carries N episodes as:
 Concatenation keeps the frame count independent of N (11 frames per batch however many episodes) and lets
 the codec scan each kind of value once per batch.
 
-The codec already enforced dtypes, shapes, shared dimensions and the schema's value ranges; `unpack_episodes`
-adds what depends on the run (max_steps, view size, vocabulary) and the cross-array bookkeeping.
+The codec already enforced dtypes, shapes, shared dimensions and the schema's value ranges. `unpack_episodes`
+checks, once, at the boundary, everything else the run depends on, against the run's `WorldSpec`: the batch's
+structure (view size, mission length, lengths that add up) drops the whole message; each episode's own values
+(tokens, grammar, attributes, cells, outcome versus rewards, pick and last action, the relabelled flag, ids)
+drop that episode only, counted under one of `EPISODE_REJECTS`. Nothing that passes can make replay, the
+generator or the networks raise later.
 """
 from __future__ import annotations
 
@@ -20,6 +24,25 @@ import numpy as np
 
 from higher_dist.learning.episode import Episode
 from higher_dist.wire.codec import Message, WireError
+from higher_dist.world.language import parse
+from higher_dist.world.spec import ACTION_PICK, SUCCESS, TIMEOUT, WRONG_PICK, WorldSpec
+
+# Why one episode of an otherwise well-formed batch was dropped (counter names, one per check).
+EPISODE_REJECTS = (
+    "episode_length",  # length outside [1, max_steps]
+    "mission_token",  # a word id outside the vocabulary
+    "mission_grammar",  # not a sentence of the language (all-PAD, ungrammatical, unknown object)
+    "mission_goal",  # an original episode whose mission does not name its goal
+    "attribute",  # goal or picked attribute outside the world's values
+    "cell",  # a view cell this world cannot show
+    "outcome",  # outcome inconsistent with length, last action, picked or goal
+    "reward",  # rewards inconsistent with outcome (or the shaping rule)
+    "picked_not_in_front",  # the picked object is not in the cell in front before the pick
+    "relabel_origin",  # a relabelled episode from a sender that may not relabel
+    "relabel_inconsistent",  # a relabelled copy that is not a wrong pick rewarded 1, or names its own goal
+    "actor_id",  # an actor id outside the run's actors
+    "weights_version",  # a policy version the learner has not published yet
+)
 
 
 def pack_episodes(episodes: Sequence[Episode]) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -48,46 +71,126 @@ def pack_episodes(episodes: Sequence[Episode]) -> tuple[dict[str, Any], dict[str
     return {"count": n}, arrays
 
 
-def unpack_episodes(msg: Message, max_steps: int, *, vocab_size: int, view_size: int = 7,
-                    mission_len: int | None = None) -> list[Episode]:
-    """Episodes from a decoded `episodes` message, checked against the run's world; WireError otherwise.
+def unpack_episodes(msg: Message, spec: WorldSpec, *, reject=None, allow_relabelled: bool = True,
+                    n_actors: int | None = None, max_weights_version: int | None = None) -> list[Episode]:
+    """Episodes from a decoded `episodes` message, checked against the run's world.
 
+    A structural fault of the batch raises WireError (drop the message). A fault of one episode calls
+    `reject(reason)` and drops that episode; without `reject` it raises WireError(reason) instead.
+    allow_relabelled: whether this sender may send relabelled copies (only the relabeler may).
     Each episode owns fresh, writable copies of its arrays, so the replay may keep one episode without
     pinning the whole received batch in memory.
     """
     if msg.type != "episodes":
         raise WireError("unknown_type", "expected episodes, got %s" % msg.type)
     a = msg.arrays
-    frames, actions, rewards, lengths = a["frames"], a["actions"], a["rewards"], a["lengths"]
+    frames, actions, rewards, lengths, mission = a["frames"], a["actions"], a["rewards"], a["lengths"], a["mission"]
     n = lengths.shape[0]
-    if frames.shape[1:] != (view_size, view_size, 4):
-        raise WireError("shape", "frames of %s, this run's view is %dx%dx4" % (frames.shape[1:], view_size, view_size))
-    if mission_len is not None and a["mission"].shape[1] != mission_len:
-        raise WireError("shape", "missions of %d tokens, expected %d" % (a["mission"].shape[1], mission_len))
-    if lengths.min() < 1 or lengths.max() > max_steps:
-        raise WireError("range", "episode lengths must lie in [1, %d]" % max_steps)
+    if frames.shape[1:] != spec.view_shape:
+        raise WireError("shape", "frames of %s, this run's view is %s" % (frames.shape[1:], spec.view_shape))
+    if mission.shape[1] != spec.mission_len:
+        raise WireError("shape", "missions of %d tokens, expected %d" % (mission.shape[1], spec.mission_len))
     steps = int(lengths.sum(dtype=np.int64))
     if steps != actions.shape[0] or steps + n != frames.shape[0]:
         raise WireError("shape", "lengths sum to %d steps; got %d actions and %d frames (expected %d)"
                         % (steps, actions.shape[0], frames.shape[0], steps + n))
-    if a["mission"].max() >= vocab_size:
-        raise WireError("range", "mission token >= vocabulary size %d" % vocab_size)
+    bad = _episode_faults(a, spec, allow_relabelled, n_actors, max_weights_version)
     episodes = []
     step_start = frame_start = 0
     for i in range(n):
         length = int(lengths[i])
-        episodes.append(Episode(
-            frames=frames[frame_start:frame_start + length + 1].copy(),
-            actions=actions[step_start:step_start + length].copy(),
-            rewards=rewards[step_start:step_start + length].copy(),
-            mission=a["mission"][i].copy(),
-            outcome=int(a["outcome"][i]),
-            picked=a["picked"][i].copy(),
-            goal=a["goal"][i].copy(),
-            relabelled=bool(a["relabelled"][i]),
-            actor_id=int(a["actor_id"][i]),
-            weights_version=int(a["weights_version"][i]),
-        ))
+        if bad[i]:
+            if reject is None:
+                raise WireError(bad[i], "episode %d of %d" % (i, n))
+            reject(bad[i])
+        else:
+            episodes.append(Episode(
+                frames=frames[frame_start:frame_start + length + 1].copy(),
+                actions=actions[step_start:step_start + length].copy(),
+                rewards=rewards[step_start:step_start + length].copy(),
+                mission=mission[i].copy(), outcome=int(a["outcome"][i]), picked=a["picked"][i].copy(),
+                goal=a["goal"][i].copy(), relabelled=bool(a["relabelled"][i]), actor_id=int(a["actor_id"][i]),
+                weights_version=int(a["weights_version"][i]),
+            ))
         step_start += length
         frame_start += length + 1
     return episodes
+
+
+def _episode_faults(a: dict, spec: WorldSpec, allow_relabelled: bool, n_actors: int | None,
+                    max_weights_version: int | None) -> list[str]:
+    """Per episode, the first failed check's reason ("" when it passes). Vectorised over the batch,
+    except the grammar, which parses each mission once."""
+    lengths = a["lengths"].astype(np.int64)
+    n = lengths.shape[0]
+    ends = np.cumsum(lengths)  # one past each episode's last step
+    frame_ends = ends + np.arange(1, n + 1)  # one past each episode's last frame
+    outcome, picked, goal = a["outcome"].astype(np.int64), a["picked"].astype(np.int64), a["goal"].astype(np.int64)
+    relabelled = a["relabelled"].astype(bool)
+    rewards, actions = a["rewards"], a["actions"]
+    reasons = [""] * n
+
+    def flag(mask: np.ndarray, reason: str) -> None:
+        for i in np.flatnonzero(mask):
+            if not reasons[i]:
+                reasons[i] = reason
+
+    flag((lengths < 1) | (lengths > spec.max_steps), "episode_length")
+    flag((a["mission"] >= spec.vocab_size).any(axis=1), "mission_token")
+    allowed_attr = spec.attr_allowed()
+    cols = np.arange(4)
+    is_pick = outcome != TIMEOUT
+    goal_ok = allowed_attr[cols, np.clip(goal, -1, allowed_attr.shape[1] - 2) + 1].all(axis=1) & (goal >= 0).all(axis=1)
+    picked_ok = np.where(is_pick, allowed_attr[cols, np.clip(picked, -1, allowed_attr.shape[1] - 2) + 1].all(axis=1)
+                         & (picked >= 0).all(axis=1), (picked == -1).all(axis=1))
+    flag(~goal_ok | ~picked_ok, "attribute")
+    allowed_cell = spec.cell_allowed()
+    frames = a["frames"]
+    cell_ok = np.ones(frames.shape[:-1], dtype=bool)
+    for c in range(frames.shape[-1]):
+        cell_ok &= allowed_cell[c, np.minimum(frames[..., c], allowed_cell.shape[1] - 1)]
+    frame_bad = ~cell_ok.reshape(frames.shape[0], -1).all(axis=1)
+    flag(np.add.reduceat(frame_bad, frame_ends - lengths - 1) > 0 if n else frame_bad[:0], "cell")
+    # Outcome versus length, last action, picked object and goal.
+    last = ends - 1
+    last_action = actions[np.clip(last, 0, max(len(actions) - 1, 0))] if len(actions) else np.zeros(n, np.int64)
+    match = (picked == goal).all(axis=1)
+    outcome_ok = np.where(outcome == TIMEOUT, lengths == spec.max_steps,
+                          (last_action == ACTION_PICK) & (match == (outcome == SUCCESS)))
+    flag(~outcome_ok, "outcome")
+    # Rewards: zero before the last step; the last is the pick's reward.
+    step_episode = np.repeat(np.arange(n), lengths) if n else np.zeros(0, np.int64)
+    early = np.ones(rewards.shape[0], dtype=bool)
+    early[last[last >= 0]] = False
+    flag(np.bincount(step_episode[early & (rewards != 0)], minlength=n) > 0, "reward")
+    final = rewards[np.clip(last, 0, max(len(rewards) - 1, 0))] if len(rewards) else np.zeros(n, np.float32)
+    if spec.reward_shaping:
+        expected = np.where(outcome == TIMEOUT, 0.0, 0.25 * (picked == goal).sum(axis=1))
+    else:
+        expected = (outcome == SUCCESS).astype(np.float64)
+    expected = np.where(relabelled, 1.0, expected)
+    flag(np.abs(final - expected) > 1e-6, "reward")
+    # The picked object sits in the cell in front of the agent on the frame before the pick.
+    front = frames[np.clip(frame_ends - 2, 0, max(len(frames) - 1, 0)), spec.view_size - 2, spec.view_size // 2]
+    front_attrs = np.stack([front[:, 1].astype(np.int64) - 1, front[:, 0].astype(np.int64) - 3,
+                            front[:, 2].astype(np.int64) - 1, front[:, 3].astype(np.int64) - 1], axis=1)
+    flag(is_pick & ~(front_attrs == picked).all(axis=1), "picked_not_in_front")
+    if not allow_relabelled:
+        flag(relabelled, "relabel_origin")
+    flag(relabelled & (outcome != WRONG_PICK), "relabel_inconsistent")
+    if n_actors is not None:
+        flag(a["actor_id"] >= n_actors, "actor_id")
+    if max_weights_version is not None:
+        flag(a["weights_version"] > max_weights_version, "weights_version")
+    # The grammar last: the only per-episode Python loop, skipped for episodes already dropped.
+    for i in range(n):
+        if reasons[i]:
+            continue
+        named = parse(a["mission"][i])
+        if named is None or not allowed_attr[cols, named.astype(np.int64) + 1].all():
+            reasons[i] = "mission_grammar"
+        elif relabelled[i] and (named.astype(np.int64) == goal[i]).all():
+            reasons[i] = "relabel_inconsistent"  # it would store the failed goal as reached
+        elif not relabelled[i] and not (named.astype(np.int64) == goal[i]).all():
+            reasons[i] = "mission_goal"
+    return reasons

@@ -6,9 +6,10 @@ entry in `_SPECS`. The checks of header field values live here too, next to the 
 declares a size outside them is refused before any memory is touched, which is what keeps a corrupt or hostile
 message from costing more than its bytes.
 
-Value ranges follow docs/architecture.md (view channels, actions, outcomes, attribute indices). The vocabulary
-is owned by world/, which this module must not import: tokens are only capped here at `MAX_TOKEN`, and the
-exact bound (`< vocab_size`) is checked by `episodes.unpack_episodes`.
+Value ranges (view channels, actions, outcomes, attribute indices) come from `world.spec`, the one statement
+of the world's encodings. What depends on the run's own world (its view size, mission length, vocabulary, the
+attribute values it uses) is checked against its `WorldSpec` by `episodes.unpack_episodes`; the schema only
+caps what no world can exceed.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from typing import Any, Union
 
 import numpy as np
 
-from higher_dist.config import COLORS, SHADES, SIZES, TYPES
+from higher_dist.world import spec as world_spec
 
 PROTOCOL_VERSION = 1
 
@@ -78,13 +79,10 @@ MAX_VIEW = 31
 MAX_MISSION_LEN = 64
 MAX_TOKEN = 1023
 
-# View channels [kind, color, shade, size]: kind 0..4 (unseen/empty/wall/key/ball), the others 0 = none,
-# else 1 + index into the global tables, so the largest value is the table's length.
-VIEW_CHANNEL_MAX = (4, len(COLORS), len(SHADES), len(SIZES))
-# Object attributes (color, type, shade, size) are plain indices, -1 = none.
-ATTR_MAX = (len(COLORS) - 1, len(TYPES) - 1, len(SHADES) - 1, len(SIZES) - 1)
-N_ACTIONS = 4
-N_OUTCOMES = 3
+VIEW_CHANNEL_MAX = tuple(n - 1 for n in world_spec.VIEW_CHANNEL_VALUES)
+ATTR_MAX = tuple(n - 1 for n in world_spec.ATTR_VALUES)  # attribute indices; -1 = none
+N_ACTIONS = world_spec.N_ACTIONS
+N_OUTCOMES = world_spec.N_OUTCOMES
 
 Bound = Union[int, float, tuple, None]
 
@@ -209,6 +207,9 @@ _SPECS: tuple[MessageSpec, ...] = (
     )),
     MessageSpec("weights", fields=(
         Field("version", "int", 0, MAX_COUNTER),
+        # The learner's env frame count when these weights were published: the one clock for the
+        # actors' epsilon schedule (the runner reads the same count directly).
+        Field("frames", "int", 0, MAX_COUNTER, required=False, default=0),
     ), any_arrays=Array("*", "float32", None), one_frame=True),
     MessageSpec("heartbeat", fields=(
         _ROLE, _ID,
@@ -219,6 +220,11 @@ _SPECS: tuple[MessageSpec, ...] = (
         _ROLE, _ID,
         Field("values", "flat", max_len=512),
     )),
+    # The learner's metrics record for dashboards (names in higher_dist/metrics.py); one frame, because
+    # the dashboard's SUB socket is CONFLATEd and keeps only the newest frame.
+    MessageSpec("telemetry", fields=(
+        Field("record", "tree", max_len=1024),
+    ), one_frame=True),
     MessageSpec("stop", fields=(
         Field("reason", "str", max_len=2048, required=False, default=""),
     )),

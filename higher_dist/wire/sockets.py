@@ -207,3 +207,37 @@ def recv_weights(socket: zmq.Socket, expected: Mapping[str, Sequence[int]] | Non
     except WireError as exc:
         (counter or REJECTS).add(exc.reason, exc.detail, where)
         return None
+
+
+class PendingSend:
+    """At most one encoded message waiting for room on a (PUSH) socket whose peer pushes back.
+
+    A full socket is the learner holding its replay ratio: the sender keeps the one message, waits a
+    little for room (POLLOUT) instead of spinning, and produces nothing new until it has left, so
+    nothing queues without bound in the sender either.
+    """
+
+    def __init__(self, socket: zmq.Socket):
+        self.socket = socket
+        self.frames: Sequence[Any] | None = None
+
+    @property
+    def busy(self) -> bool:
+        return self.frames is not None
+
+    def put(self, frames: Sequence[Any]) -> None:
+        if self.frames is not None:
+            raise RuntimeError("PendingSend.put: the previous message has not left yet")
+        self.frames = frames
+
+    def flush(self, wait_ms: int) -> bool:
+        """Try to send the waiting message, waiting up to `wait_ms` for room; True once nothing waits."""
+        if self.frames is None:
+            return True
+        if self.socket.poll(wait_ms, zmq.POLLOUT):
+            try:
+                self.socket.send_multipart(self.frames, flags=zmq.NOBLOCK, copy=False)
+                self.frames = None
+            except zmq.Again:
+                pass
+        return self.frames is None

@@ -29,14 +29,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from higher_dist.config import WorldConfig
-from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK
 from higher_dist.world import language
 from higher_dist.world.objects import ObjectSpace
-
-KIND_UNSEEN, KIND_EMPTY, KIND_WALL, KIND_KEY, KIND_BALL = 0, 1, 2, 3, 4
-ACTION_LEFT, ACTION_RIGHT, ACTION_FORWARD, ACTION_PICK = 0, 1, 2, 3
-N_ACTIONS = 4
-RUNNING = -1  # outcome of an env whose episode goes on
+from higher_dist.world.spec import (  # noqa: F401  (the encodings, re-exported for the world's users)
+    ACTION_FORWARD, ACTION_LEFT, ACTION_PICK, ACTION_RIGHT, KIND_BALL, KIND_EMPTY, KIND_KEY, KIND_UNSEEN,
+    KIND_WALL, N_ACTIONS, RUNNING, SUCCESS, TIMEOUT, WRONG_PICK,
+)
 
 _CELL_DTYPE = np.dtype("<u4")  # little-endian so that the bytes read [kind, color, shade, size]
 _EMPTY_CELL = KIND_EMPTY

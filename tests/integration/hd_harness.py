@@ -36,6 +36,7 @@ FAST_SETTINGS: dict[str, Any] = {
     "generator.batch_size": 8,
     "generator.n_min": 10,
     "generator.min_accuracy": 0.0,
+    "generator.updates_per_kframe": 200.0,  # a tiny world: the generator must parse within seconds
     "eval.episodes": 4,
     "stats_every_s": 0.5,
     "checkpoint_every_s": 2,

@@ -28,7 +28,8 @@ KINDS = {"control": zmq.DEALER, "experience": zmq.PUSH, "weights": zmq.SUB, "tel
 
 def forged_messages() -> tuple[list[bytes], list[bytes]]:
     """A well-formed episodes batch of all-ones frames, and a hello: what an outsider would send."""
-    from higher_dist.learning.episode import SUCCESS, Episode
+    from higher_dist.learning.episode import Episode
+    from higher_dist.world.spec import SUCCESS
     from higher_dist.wire import PROTOCOL_VERSION, encode, pack_episodes
 
     length = 9

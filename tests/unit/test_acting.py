@@ -74,7 +74,7 @@ def test_greedy_evaluation_returns_a_rate_over_the_requested_episodes():
     torch.set_num_threads(1)
     cfg = make_config("her", "small")
     q = TorchQFunction(cfg.network)
-    q.load(DQNLearner(cfg.network, cfg.dqn, vocab_size=len(VOCAB)).weights_numpy())
+    q.load(DQNLearner(cfg.network, cfg.dqn).weights_numpy())
     rate = evaluate(q, cfg.world, cfg.network.frame_stack, 20, "heldout", seed=0, n_envs=8)
     assert 0.0 <= rate <= 1.0
     assert rate == evaluate(q, cfg.world, cfg.network.frame_stack, 20, "heldout", seed=0, n_envs=8)

@@ -14,8 +14,9 @@ import zmq
 
 from higher_dist.launch.channels import CHANNELS, EXPERIENCE_HWM, InsecureBind, check_exposure, is_loopback, open_channel
 from higher_dist.launch.topology import Endpoints, free_base_port
-from higher_dist.learning.episode import SUCCESS, Episode
-from higher_dist.wire import encode, pack_episodes, recv_message
+from higher_dist.learning.episode import Episode
+from higher_dist.world.spec import SUCCESS
+from higher_dist.wire import MESSAGE_TYPES, encode, pack_episodes, recv_message
 from higher_dist.wire.security import Security, generate_keys
 
 
@@ -50,6 +51,8 @@ def episodes_message(n: int, seed: int) -> list:
 def test_every_channel_has_one_endpoint_and_distinct_ports():
     field_names = {f.name for f in dataclasses.fields(Endpoints)}
     assert field_names == set(CHANNELS)
+    for channel in CHANNELS.values():
+        assert set(channel.messages) <= set(MESSAGE_TYPES), channel.name
     ends = Endpoints.from_base("10.1.2.3", 7000)
     ports = [int(ends[name].rsplit(":", 1)[1]) for name in CHANNELS]
     assert sorted(ports) == list(range(7000, 7000 + len(CHANNELS)))

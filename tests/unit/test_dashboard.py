@@ -10,7 +10,8 @@ import pytest
 import zmq
 from rich.console import Console
 
-from higher_dist.roles.dashboard import decode_record, run_dashboard, telemetry_endpoint_for
+from higher_dist.roles.dashboard import STOP, decode_record, run_dashboard, telemetry_endpoint_for
+from higher_dist.wire import encode
 from higher_dist.roles.dashboard_view import DashboardState, render, sparkline
 
 
@@ -129,11 +130,16 @@ def test_telemetry_endpoint_for():
             telemetry_endpoint_for(bad)
 
 
+def telemetry(record: dict) -> bytes:
+    return bytes(encode("telemetry", {"record": record}, sender="learner")[0])
+
+
 def test_decode_record():
-    assert decode_record(msgpack.packb({"frames": 3})) == {"frames": 3}
-    assert decode_record(msgpack.packb({1: "int keys are fine"})) == {1: "int keys are fine"}
+    assert decode_record(telemetry({"frames": 3})) == {"frames": 3}
+    assert decode_record(bytes(encode("stop")[0])) == STOP
     assert decode_record(b"\xc1garbage") is None
-    assert decode_record(msgpack.packb([1, 2])) is None  # valid msgpack, but not a record
+    assert decode_record(msgpack.packb({"frames": 3})) is None  # raw msgpack is not a telemetry message
+    assert decode_record(bytes(encode("hello", {"role": "actor", "host": "h", "pid": 1, "protocol": 1})[0])) is None
     assert decode_record(b"") is None
 
 
@@ -159,15 +165,15 @@ def test_run_dashboard_over_a_real_socket():
         # PUB drops everything until the subscription arrives (slow joiner): resend the first
         # record until the dashboard has seen it, then play the rest of the script once.
         while state.records_seen == 0 and time.monotonic() - started < 5:
-            pub.send(msgpack.packb(records[0]))
+            pub.send(telemetry(records[0]))
             time.sleep(0.05)
         assert state.records_seen > 0, "the dashboard never received a record"
         # Pauses longer than the dashboard's 50 ms poll: with CONFLATE only the newest frame waits.
-        for frame in [msgpack.packb(r) for r in records[1:]] + [b"\xc1\xc1 not msgpack"]:
+        for frame in [telemetry(r) for r in records[1:]] + [b"\xc1\xc1 not msgpack"]:
             pub.send(frame)
             time.sleep(0.2)
         while thread.is_alive() and time.monotonic() - started < 8:
-            pub.send(msgpack.packb({"type": "stop"}))
+            pub.send(bytes(encode("stop")[0]))
             thread.join(0.1)
     finally:
         pub.close(0)

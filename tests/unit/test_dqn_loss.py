@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import nn
 
+from higher_dist.world.spec import DEFAULT_SPEC
 from higher_dist.config import DQNConfig, NetworkConfig
 from higher_dist.learning.dqn import DQNLearner, dqn_loss
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
@@ -175,7 +176,7 @@ def random_batch(rng: np.random.Generator, b: int, k: int = 2) -> SimpleNamespac
 
     mission = np.zeros((b, 10), np.int64)
     for i, n in enumerate(rng.integers(5, 9, b)):
-        mission[i, :n] = rng.integers(3, 40, n)
+        mission[i, :n] = rng.integers(3, DEFAULT_SPEC.vocab_size, n)
     return SimpleNamespace(
         indices=np.arange(b), generations=np.zeros(b, np.int64), obs=views(), mission=mission,
         action=rng.integers(0, 4, b), reward=(rng.random(b) < 0.3).astype(np.float32),

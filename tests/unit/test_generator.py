@@ -45,7 +45,7 @@ def test_decoder_targets_append_end_and_keep_pad():
 
 
 def test_greedy_respects_the_length_cap_and_the_mission_encoding():
-    model = InstructionGenerator(SMALL, len(VOCAB))
+    model = InstructionGenerator(SMALL)
     views = torch.as_tensor(np.random.default_rng(0).integers(0, 5, size=(16, 7, 7, 4)), dtype=torch.uint8)
     for cap in (1, 3, 5, 20):
         out = model.greedy(views, max_len=cap)
@@ -65,7 +65,7 @@ def test_greedy_respects_the_length_cap_and_the_mission_encoding():
 def test_generator_learns_expert_pairs_and_describes_unseen_combinations():
     rng = np.random.default_rng(0)
     views, missions, _ = make_pairs(FEW_OBJECTS, 400, "train", rng)
-    trainer = GeneratorTrainer(SMALL, len(VOCAB), seed=0)
+    trainer = GeneratorTrainer(SMALL, seed=0)
     trainer.dataset.add_many(views, missions)
     first = trainer.train_steps(20)
     last = trainer.train_steps(480)
@@ -144,8 +144,8 @@ def test_semantic_accuracy_on_hand_made_sequences():
 # ---------------------------------------------------------------------------------------- trainer
 
 def test_gate_needs_n_min_pairs_and_accuracy_unless_ungated():
-    gated = GeneratorTrainer(replace(SMALL, n_min=20, min_accuracy=0.5), len(VOCAB), seed=0)
-    ungated = GeneratorTrainer(replace(SMALL, n_min=20, min_accuracy=0.0), len(VOCAB), seed=0)
+    gated = GeneratorTrainer(replace(SMALL, n_min=20, min_accuracy=0.5), seed=0)
+    ungated = GeneratorTrainer(replace(SMALL, n_min=20, min_accuracy=0.0), seed=0)
     for t in (gated, ungated):
         assert not t.gate_open
         assert t.observe_episodes([episode(SUCCESS)] * 19 + [episode(WRONG_PICK)] * 5) == 19
@@ -160,11 +160,11 @@ def test_gate_needs_n_min_pairs_and_accuracy_unless_ungated():
 def test_trainer_checkpoint_round_trip_continues_identically():
     rng = np.random.default_rng(1)
     views, missions, _ = make_pairs(FEW_OBJECTS, 100, "train", rng)
-    a = GeneratorTrainer(SMALL, len(VOCAB), seed=3)
+    a = GeneratorTrainer(SMALL, seed=3)
     a.dataset.add_many(views, missions)
     a.train_steps(5)
     a.evaluate()
-    b = GeneratorTrainer(SMALL, len(VOCAB), seed=99)
+    b = GeneratorTrainer(SMALL, seed=99)
     b.load_state_dict(a.state_dict())
     assert b.steps == 5 and b.val_accuracy == a.val_accuracy and len(b.dataset) == len(a.dataset)
     assert a.train_steps(3) == pytest.approx(b.train_steps(3), rel=1e-6)
@@ -172,7 +172,7 @@ def test_trainer_checkpoint_round_trip_continues_identically():
 
 
 def test_generate_handles_empty_input_and_expert_tokens_parse():
-    t = GeneratorTrainer(SMALL, len(VOCAB), seed=0)
+    t = GeneratorTrainer(SMALL, seed=0)
     assert t.generate(np.zeros((0, 7, 7, 4), np.uint8)).shape == (0, MISSION_LEN)
     attrs = np.array([[0, 0, 1, 0]])
     acc = semantic_accuracy(expert_tokens(attrs, np.random.default_rng(0)), attrs)

@@ -8,14 +8,13 @@ import torch
 import torch.nn.functional as F
 
 from higher_dist.config import NetworkConfig
-from higher_dist.learning.networks import (
-    VIEW_CHANNEL_VALUES, QNetwork, ViewEncoder, load_weights_numpy, lookup, weights_numpy,
-)
+from higher_dist.learning.networks import QNetwork, ViewEncoder, load_weights_numpy, lookup, weights_numpy
+from higher_dist.world.spec import DEFAULT_SPEC, VIEW_CHANNEL_VALUES
 
 torch.set_num_threads(1)
 
 SMALL = NetworkConfig(embed_dim=4, conv_channels=(8, 8), frame_stack=2, word_embed_dim=8, text_hidden=8, hidden=16)
-VOCAB = 40
+VOCAB = DEFAULT_SPEC.vocab_size
 
 
 def random_views(rng: np.random.Generator, b: int, k: int, v: int = 7) -> np.ndarray:
@@ -45,7 +44,7 @@ def as_tensors(views: np.ndarray, missions: np.ndarray) -> tuple[torch.Tensor, t
 def test_output_shape_and_both_branches_get_gradients(fusion: str, dueling: bool) -> None:
     torch.manual_seed(0)
     cfg = NetworkConfig(**{**SMALL.__dict__, "fusion": fusion, "dueling": dueling})
-    net = QNetwork(cfg, vocab_size=VOCAB)
+    net = QNetwork(cfg)
     rng = np.random.default_rng(0)
     q = net(*as_tensors(random_views(rng, 5, 2), random_missions(rng, 5)))
     assert q.shape == (5, 4) and q.dtype == torch.float32 and torch.isfinite(q).all()
@@ -58,7 +57,7 @@ def test_output_shape_and_both_branches_get_gradients(fusion: str, dueling: bool
 
 def test_mission_changes_q_values() -> None:
     torch.manual_seed(1)
-    net = QNetwork(SMALL, vocab_size=VOCAB)
+    net = QNetwork(SMALL)
     rng = np.random.default_rng(1)
     views = random_views(rng, 4, 2)
     q1 = net(*as_tensors(views, random_missions(rng, 4)))
@@ -69,7 +68,7 @@ def test_mission_changes_q_values() -> None:
 def test_dueling_advantage_has_zero_mean() -> None:
     """Q = V + A - mean(A): the mean over actions of Q is exactly the value stream."""
     torch.manual_seed(2)
-    net = QNetwork(SMALL, vocab_size=VOCAB)
+    net = QNetwork(SMALL)
     captured = {}
     net.value.register_forward_hook(lambda mod, inp, out: captured.__setitem__("v", out))
     net.advantage.register_forward_hook(lambda mod, inp, out: captured.__setitem__("a", out))
@@ -84,7 +83,7 @@ def test_extra_padding_and_batch_company_do_not_change_output() -> None:
     """Trailing PADs are ignored, and a sample's Q does not depend on the lengths of its batch mates
     (the GRU state is taken at each mission's own last word)."""
     torch.manual_seed(3)
-    net = QNetwork(SMALL, vocab_size=VOCAB).eval()
+    net = QNetwork(SMALL).eval()
     rng = np.random.default_rng(3)
     views, missions = random_views(rng, 6, 2), random_missions(rng, 6, length=10)
     q = net(*as_tensors(views, missions))
@@ -153,9 +152,9 @@ def test_invalid_views_are_refused() -> None:
 
 def test_weights_numpy_round_trip() -> None:
     torch.manual_seed(6)
-    a = QNetwork(SMALL, vocab_size=VOCAB)
+    a = QNetwork(SMALL)
     torch.manual_seed(7)
-    b = QNetwork(SMALL, vocab_size=VOCAB)
+    b = QNetwork(SMALL)
     arrays = weights_numpy(a)
     assert arrays and all(x.dtype == np.float32 for x in arrays.values())
     rng = np.random.default_rng(6)
@@ -172,7 +171,7 @@ def test_weights_numpy_round_trip() -> None:
 
 def test_load_weights_numpy_rejects_mismatch_without_partial_update() -> None:
     torch.manual_seed(8)
-    net = QNetwork(SMALL, vocab_size=VOCAB)
+    net = QNetwork(SMALL)
     good = weights_numpy(net)
     reference = {k: v.copy() for k, v in good.items()}
     name = "trunk.weight"
@@ -195,6 +194,6 @@ def test_load_weights_numpy_rejects_mismatch_without_partial_update() -> None:
         np.testing.assert_array_equal(v, reference[k])
 
     # A network of another size is refused too.
-    other = QNetwork(NetworkConfig(**{**SMALL.__dict__, "hidden": 32}), vocab_size=VOCAB)
+    other = QNetwork(NetworkConfig(**{**SMALL.__dict__, "hidden": 32}))
     with pytest.raises(ValueError, match="shape"):
         load_weights_numpy(other, good)

@@ -22,7 +22,7 @@ FEW_OBJECTS = WorldConfig(name="few", room_size=6, n_objects=4, colors=("red", "
                           shades=("light", "dark"), sizes=("tiny", "giant"), heldout_count=6)
 GEN = GeneratorConfig(embed_dim=8, conv_channels=(16, 16), word_embed_dim=16, hidden=64, lr=3e-3,
                       batch_size=32, capacity=2000, n_min=100, min_accuracy=0.8,
-                      train_steps_per_round=100, rounds_per_eval=1)
+                      eval_every_updates=100)
 
 
 def make_episode(view, mission, outcome, picked, goal, relabelled=False, length=3) -> Episode:
@@ -56,12 +56,12 @@ def mixed_batch(seed: int = 0) -> tuple[list[Episode], list[Episode]]:
 @pytest.fixture(scope="module")
 def trained() -> LearnedRelabel:
     """A learned relabeller trained on 400 successful episodes; its gate has opened."""
-    strategy = LearnedRelabel(GEN, len(VOCAB), seed=0)
+    strategy = LearnedRelabel(GEN, seed=0)
     rng = np.random.default_rng(0)
     views, missions, goals = make_pairs(FEW_OBJECTS, 400, "train", rng)
     strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
     for _ in range(5):
-        strategy.train(100)  # one round each, evaluated (rounds_per_eval=1)
+        strategy.train(100)  # evaluated after each 100 updates (eval_every_updates=100)
     assert strategy.trainer.gate_open, strategy.metrics()
     return strategy
 
@@ -115,7 +115,7 @@ def test_noisy_expert_changes_each_attribute_at_rate_p_times_one_minus_one_over_
 
 
 def test_learned_relabels_nothing_while_the_gate_is_closed():
-    strategy = LearnedRelabel(GEN, len(VOCAB), seed=0)
+    strategy = LearnedRelabel(GEN, seed=0)
     batch, wrong = mixed_batch()
     rng = np.random.default_rng(1)
     views, missions, goals = make_pairs(FEW_OBJECTS, GEN.n_min - 1, "train", rng)
@@ -190,7 +190,7 @@ def test_learned_checkpoint_round_trip(trained, tmp_path):
     # Through the run directory's checkpoint format (torch.load with weights_only=True).
     run_dir = RunDir(tmp_path)
     run_dir.save_checkpoint("relabeler", trained.state_dict())
-    clone = LearnedRelabel(GEN, len(VOCAB), seed=42)
+    clone = LearnedRelabel(GEN, seed=42)
     clone.load_state_dict(run_dir.load_checkpoint("relabeler"))
     wrong = wrong_picks(8, "train", seed=9)
     assert [c.mission.tolist() for c in clone.relabel(wrong)] == [c.mission.tolist() for c in trained.relabel(wrong)]

@@ -5,32 +5,24 @@ import msgpack
 import numpy as np
 import pytest
 
-from higher_dist.config import make_config, from_dict
-from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
+from dataclasses import replace
+
+from higher_dist.config import WorldConfig, make_config, from_dict
+from higher_dist.learning.episode import Episode
+from higher_dist.learning.samples import real_episodes
 from higher_dist.wire import (MESSAGE_TYPES, PROTOCOL_VERSION, SPECS, WireError, decode, decode_weights, encode,
                               encode_weights, pack_episodes, unpack_episodes)
 from higher_dist.wire.codec import MAGIC
+from higher_dist.world.spec import WorldSpec
 
-VOCAB = 30
-MAX_STEPS = 40
-
-
-def make_episode(rng: np.random.Generator, length: int, outcome: int = WRONG_PICK) -> Episode:
-    frames = np.stack([rng.integers(0, [5, 7, 6, 6], size=(7, 7, 4)) for _ in range(length + 1)]).astype(np.uint8)
-    rewards = np.zeros(length, np.float32)
-    if outcome == SUCCESS:
-        rewards[-1] = 1.0
-    return Episode(frames=frames, actions=rng.integers(0, 4, length).astype(np.uint8), rewards=rewards,
-                   mission=rng.integers(0, VOCAB, 10).astype(np.int64), outcome=outcome,
-                   picked=np.array([2, 1, 0, 4], np.int8), goal=np.array([5, 0, 3, 1], np.int8),
-                   relabelled=bool(rng.integers(2)), actor_id=int(rng.integers(8)),
-                   weights_version=int(rng.integers(1000)))
+SPEC = WorldSpec.of(WorldConfig())
+MAX_STEPS = SPEC.max_steps
 
 
 def episode_batch(n: int = 5, seed: int = 0) -> list[Episode]:
-    rng = np.random.default_rng(seed)
-    outcomes = [SUCCESS, WRONG_PICK, TIMEOUT]
-    return [make_episode(rng, int(rng.integers(1, MAX_STEPS + 1)), outcomes[i % 3]) for i in range(n)]
+    """Real episodes of every outcome, relabelled copies included, with varied ids and versions."""
+    episodes = real_episodes(WorldConfig(), n, seed=seed, relabelled=True)
+    return [replace(ep, actor_id=i % 3, weights_version=7 * i) for i, ep in enumerate(episodes)]
 
 
 def sample_message(msg_type: str) -> tuple[dict, dict]:
@@ -52,6 +44,8 @@ def sample_message(msg_type: str) -> tuple[dict, dict]:
                        "counters": {"frames": 123456, "episodes": 77, "fps": 1520.5}}, {}),
         "stats": ({"role": "learner", "id": 0, "values": {"loss": 0.031, "updates": 10, "phase": "learn",
                                                           "gate_open": True, "eval": None}}, {}),
+        "telemetry": ({"record": {"frames": 1200, "success_rate_eval_train": 0.25, "relabel_gate_open": False,
+                                  "roles": [{"role": "actor", "id": 0, "state": "alive", "frames_per_s": None}]}}, {}),
         "stop": ({"reason": "ctrl-c"}, {}),
     }[msg_type]
 
@@ -84,7 +78,7 @@ def test_optional_field_gets_its_default():
 def test_episode_batch_round_trip():
     episodes = episode_batch(12, seed=3)
     msg = decode(encode("episodes", *pack_episodes(episodes)))
-    back = unpack_episodes(msg, MAX_STEPS, vocab_size=VOCAB)
+    back = unpack_episodes(msg, SPEC)
     assert len(back) == len(episodes)
     for a, b in zip(episodes, back):
         for name in ("frames", "actions", "rewards", "mission", "picked", "goal"):
@@ -256,19 +250,19 @@ def test_unpack_checks_the_run_world():
     msg = decode(encode("episodes", *pack_episodes(episodes)))
     longest = max(ep.length for ep in episodes)
     with pytest.raises(WireError) as err:
-        unpack_episodes(msg, longest - 1, vocab_size=VOCAB)
-    assert err.value.reason == "range"
+        unpack_episodes(msg, replace(SPEC, max_steps=longest - 1))
+    assert err.value.reason in ("episode_length", "outcome")
     with pytest.raises(WireError) as err:
-        unpack_episodes(msg, MAX_STEPS, vocab_size=int(msg.arrays["mission"].max()))
-    assert err.value.reason == "range"
+        unpack_episodes(msg, replace(SPEC, vocab_size=int(msg.arrays["mission"].max())))
+    assert err.value.reason == "mission_token"
     with pytest.raises(WireError) as err:
-        unpack_episodes(msg, MAX_STEPS, vocab_size=VOCAB, view_size=9)
+        unpack_episodes(msg, replace(SPEC, view_size=9))
     assert err.value.reason == "shape"
     with pytest.raises(WireError) as err:
-        unpack_episodes(msg, MAX_STEPS, vocab_size=VOCAB, mission_len=12)
+        unpack_episodes(msg, replace(SPEC, mission_len=12))
     assert err.value.reason == "shape"
     with pytest.raises(WireError) as err:
-        unpack_episodes(decode(encode("stop")), MAX_STEPS, vocab_size=VOCAB)
+        unpack_episodes(decode(encode("stop")), SPEC)
     assert err.value.reason == "unknown_type"
 
 
@@ -278,5 +272,5 @@ def test_unpack_rejects_lengths_that_do_not_add_up():
     lengths[0] += 1  # one step more than the actions and frames carried
     msg = decode(encode("episodes", fields, {**arrays, "lengths": lengths}))
     with pytest.raises(WireError) as err:
-        unpack_episodes(msg, MAX_STEPS + 1, vocab_size=VOCAB)
+        unpack_episodes(msg, replace(SPEC, max_steps=MAX_STEPS + 1))
     assert err.value.reason == "shape"

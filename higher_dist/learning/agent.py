@@ -1,0 +1,148 @@
+"""One builder of the agent, used by the single-process runner and by every role of the cluster.
+
+It makes the components (the learner core, the relabel strategy, the actors' collectors and policies),
+derives every seed from `cfg.seed`, and owns the cadences (greedy evaluation, generator training pace,
+the frame count that drives epsilon), so that the runner really is the cluster in one process: a
+difference between the two is a bug in one place, not two drifting copies.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from higher_dist.config import Config
+from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate_goal_sets
+from higher_dist.learning.exploration import actor_epsilons
+from higher_dist.learning.learner_core import LearnerCore
+from higher_dist.learning.relabel import RelabelStrategy, make_relabeler
+from higher_dist.world.spec import WorldSpec
+
+
+@dataclass(frozen=True)
+class Seeds:
+    """Every seed of a run, from the one in the config. Streams are far apart so no two roles share one."""
+
+    base: int
+
+    @property
+    def learner(self) -> int:  # network initialisation, replay sampling
+        return self.base
+
+    @property
+    def relabeler(self) -> int:  # generator initialisation, dataset split, expert wording
+        return self.base + 1
+
+    def actor_envs(self, actor: int) -> int:  # actor i's environments
+        return self.base * 1000 + 17 * (actor + 1)
+
+    def actor_exploration(self, actor: int) -> int:  # actor i's epsilon-greedy draws
+        return self.base * 7919 + actor
+
+    def actor_torch(self, actor: int) -> int:
+        return self.base + actor
+
+    def evaluation(self, frames: int) -> int:  # fresh goals at every evaluation, reproducible per frame count
+        return self.base + 10_000 + int(frames)
+
+
+class Cadence:
+    """Fires once each time a counter passes a multiple of `every` (evaluation every N frames, ...)."""
+
+    def __init__(self, every: int, start: int = 0):
+        self.every = max(1, int(every))
+        self.next = (int(start) // self.every + 1) * self.every
+
+    def due(self, count: int) -> bool:
+        if count < self.next:
+            return False
+        self.next = (int(count) // self.every + 1) * self.every
+        return True
+
+
+class GeneratorPace:
+    """Generator updates owed for the env frames seen: `generator.updates_per_kframe` per 1000 frames.
+
+    The runner and the relabeler service both feed it the frames of the original episodes they handle
+    and train what it says is owed, so the generator gets the same training per frame whatever the
+    machine's speed. Updates that cannot run yet (too few pairs for a batch) are forgiven, not banked.
+    """
+
+    def __init__(self, updates_per_kframe: float):
+        self.rate = float(updates_per_kframe) / 1000.0
+        self.frames = 0
+        self.settled = 0  # updates done or forgiven
+
+    def add_frames(self, frames: int) -> None:
+        self.frames += int(frames)
+
+    @property
+    def owed(self) -> int:
+        return max(0, int(self.frames * self.rate) - self.settled)
+
+    def settle(self, updates: int) -> None:
+        self.settled += int(updates)
+
+    def state_dict(self) -> dict:
+        return {"frames": self.frames, "settled": self.settled}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.frames, self.settled = int(state["frames"]), int(state["settled"])
+
+
+def train_generator(strategy: RelabelStrategy, pace: GeneratorPace, max_updates: int | None = None) -> int:
+    """Run the updates `pace` says are owed (at most `max_updates`); returns how many were settled."""
+    owed = pace.owed if max_updates is None else min(pace.owed, max_updates)
+    if owed <= 0:
+        return 0
+    ran = strategy.train(owed)
+    # An empty result means the strategy could not train yet (no generator, or too few pairs).
+    pace.settle(owed)
+    return owed if ran else 0
+
+
+class AgentBuilder:
+    """Makes the parts of one run from its config; the runner and the roles call only this."""
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+        self.spec = WorldSpec.of(cfg.world)
+        self.seeds = Seeds(cfg.seed)
+
+    # -- components --------------------------------------------------------------------------------
+    def learner_core(self, device: str | None = None) -> LearnerCore:
+        return LearnerCore(self.cfg, device=device)
+
+    def relabeler(self) -> RelabelStrategy:
+        return make_relabeler(self.cfg, seed=self.seeds.relabeler)
+
+    def generator_pace(self) -> GeneratorPace:
+        return GeneratorPace(self.cfg.generator.updates_per_kframe)
+
+    def collector(self, actor: int) -> EpisodeCollector:
+        return EpisodeCollector(self.cfg.world, self.cfg.envs_per_actor, self.cfg.network.frame_stack,
+                                seed=self.seeds.actor_envs(actor), actor_id=actor)
+
+    def policy(self, device: str = "cpu") -> TorchQFunction:
+        return TorchQFunction(self.cfg.network, self.spec, device=device)
+
+    def exploration_rng(self, actor: int) -> np.random.Generator:
+        return np.random.default_rng(self.seeds.actor_exploration(actor))
+
+    # -- cadences ----------------------------------------------------------------------------------
+    def epsilons(self, actor: int, n_envs: int, learner_frames: int) -> np.ndarray:
+        """Per-env epsilons of actor `actor`. `learner_frames`: the run's env frames as the learner counts
+        them (original episodes only), the one clock for linear decay in the runner and the cluster."""
+        return actor_epsilons(self.cfg.exploration, actor, self.cfg.actors, n_envs, learner_frames)
+
+    def evaluation_cadence(self, start_frames: int = 0) -> Cadence:
+        return Cadence(self.cfg.eval.every_frames, start_frames)
+
+    def weights_due(self, updates_before: int, updates_after: int) -> bool:
+        """Whether the policy should be refreshed (published, or copied in the runner)."""
+        every = self.cfg.weights_every
+        return updates_after // every != updates_before // every
+
+    def evaluate(self, q_fn, frames: int) -> dict[str, float]:
+        """Greedy success on training and held-out goals at `frames` learner frames."""
+        return evaluate_goal_sets(q_fn, self.cfg, seed=self.seeds.evaluation(frames))

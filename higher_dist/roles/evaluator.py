@@ -1,0 +1,60 @@
+"""Greedy evaluation off every collection and update path: a thread of the learner's process with its own
+policy copy and its own environments (Acme's evaluator node, in a thread).
+
+The learner hands it a snapshot of the weights when the evaluation cadence fires; the result lands in
+`latest` when done. If an evaluation is still running when the next one is due, the new one is skipped
+rather than queued: the curve gets a point less, the learner never waits.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+
+import numpy as np
+
+from higher_dist.learning.agent import AgentBuilder
+
+log = logging.getLogger("higher.evaluator")
+
+
+class BackgroundEvaluator:
+    def __init__(self, agent: AgentBuilder):
+        self.agent = agent
+        self.policy = agent.policy()
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._latest: dict[str, float] = {}
+        self.evaluations = 0
+        self.skipped = 0
+
+    @property
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self, weights: dict[str, np.ndarray], frames: int) -> bool:
+        """Evaluate `weights` (a snapshot the caller no longer edits) at `frames`; False if still busy."""
+        if self.busy:
+            self.skipped += 1
+            return False
+        self._thread = threading.Thread(target=self._run, args=(weights, frames), name="evaluator", daemon=True)
+        self._thread.start()
+        return True
+
+    def _run(self, weights: dict[str, np.ndarray], frames: int) -> None:
+        try:
+            self.policy.load(weights)
+            result = self.agent.evaluate(self.policy, frames)
+        except Exception:  # an evaluation bug must not take the learner down with it
+            log.exception("evaluation at %d frames failed", frames)
+            return
+        with self._lock:
+            self._latest = {**result, "eval_frames": int(frames)}
+            self.evaluations += 1
+
+    def latest(self) -> dict[str, float]:
+        with self._lock:
+            return dict(self._latest)
+
+    def wait(self, timeout_s: float = 60.0) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout_s)

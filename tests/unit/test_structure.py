@@ -1,0 +1,176 @@
+"""The one-place knowledge of issue 9: the world spec, the agent builder (seeds, cadences, generator pace),
+the limiter's tolerance, LearnerCore's counters and the config's override / from_dict / validate."""
+from __future__ import annotations
+
+import ast
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from higher_dist.config import ConfigError, WorldConfig, from_dict, make_config, override, small_world, validate
+from higher_dist.learning.agent import AgentBuilder, Cadence, GeneratorPace, Seeds, train_generator
+from higher_dist.learning.learner_core import LearnerCore
+from higher_dist.learning.rate_limiter import SamplesPerInsertLimiter
+from higher_dist.learning.samples import real_episodes
+from higher_dist.world import language
+from higher_dist.world.grid import BatchedFetchAttr
+from higher_dist.world.spec import (DEFAULT_SPEC, N_ACTIONS, OUTCOME_NAMES, SUCCESS, TIMEOUT, VIEW_CHANNEL_VALUES,
+                                    WRONG_PICK, WorldSpec)
+
+PACKAGE = Path(__file__).resolve().parents[2] / "higher_dist"
+
+
+# -- the world spec ---------------------------------------------------------------------------------
+
+def test_spec_is_made_from_the_world_config():
+    small = WorldSpec.of(small_world())
+    assert small.view_size == 7 and small.max_steps == 20
+    assert small.mission_len == language.MISSION_LEN and small.vocab_size == len(language.VOCAB)
+    assert small.channel_values == VIEW_CHANNEL_VALUES == DEFAULT_SPEC.channel_values  # global tables
+    assert small.world_values[0] == (0, 1)  # red, green
+    assert DEFAULT_SPEC.world_values[0] == tuple(range(6))
+    assert WorldSpec.of(replace(WorldConfig(), view_size=9)).view_shape == (9, 9, 4)
+    assert (SUCCESS, WRONG_PICK, TIMEOUT) == (0, 1, 2) and len(OUTCOME_NAMES) == 3 and N_ACTIONS == 4
+
+
+def test_every_cell_the_world_shows_is_allowed_by_its_spec():
+    for world in (WorldConfig(), small_world()):
+        spec = WorldSpec.of(world)
+        allowed = spec.cell_allowed()
+        env = BatchedFetchAttr(world, 16, seed=3)
+        view, _ = env.reset()
+        rng = np.random.default_rng(0)
+        for _ in range(60):
+            for c in range(4):
+                assert allowed[c, view[..., c]].all(), (world.name, c)
+            view = env.step(rng.integers(4, size=16)).view
+
+
+def test_networks_replay_and_generator_read_the_spec():
+    cfg = make_config("higher", "small", **{"world.view_size": 5})
+    core = LearnerCore(cfg)
+    assert core.replay.view_size == 5 and core.replay.mission_len == core.spec.mission_len
+    assert core.dqn.online.view.view_size == 5
+    assert core.dqn.online.text.embed.num_embeddings == core.spec.vocab_size
+    strategy = AgentBuilder(cfg).relabeler()
+    assert strategy.trainer.model.view_size == 5
+    assert strategy.trainer.dataset.views.shape[1:] == (5, 5, 4)
+
+
+def test_layering_world_imports_nothing_from_learning_and_pure_layers_no_transport():
+    for layer in ("world", "learning"):
+        for path in (PACKAGE / layer).glob("*.py"):
+            tree = ast.parse(path.read_text())
+            names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+            names += [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+            for name in names:
+                assert not name.startswith(("zmq", "rich", "multiprocessing")), (path, name)
+                if layer == "world":
+                    assert not name.startswith("higher_dist.learning"), (path, name)
+
+
+# -- the builder --------------------------------------------------------------------------------------
+
+def test_seeds_are_derived_once_and_distinct():
+    s = Seeds(3)
+    streams = [s.learner, s.relabeler, *(s.actor_envs(i) for i in range(8))]
+    assert len(set(streams)) == len(streams)
+    assert s.evaluation(100) != s.evaluation(200)
+    a, b = AgentBuilder(make_config("her", "small", seed=3)), AgentBuilder(make_config("her", "small", seed=3))
+    ca, cb = a.collector(1), b.collector(1)
+    assert np.array_equal(ca.observation()[0], cb.observation()[0])
+    assert not np.array_equal(ca.observation()[0], a.collector(0).observation()[0])
+
+
+def test_cadence_fires_once_per_multiple_and_resumes_mid_way():
+    c = Cadence(100)
+    assert [n for n in (0, 50, 99, 100, 101, 250, 260, 300) if c.due(n)] == [100, 250, 300]
+    assert not Cadence(100, start=250).due(280) and Cadence(100, start=250).due(300)
+
+
+def test_generator_pace_is_per_frame_and_forgives_what_cannot_run():
+    pace = GeneratorPace(updates_per_kframe=50)
+    pace.add_frames(999)
+    assert pace.owed == 49
+    pace.settle(40)
+    pace.add_frames(1001)
+    assert pace.owed == 60
+
+    class Untrainable:
+        def train(self, n):
+            return {}
+
+    assert train_generator(Untrainable(), pace) == 0 and pace.owed == 0  # forgiven, not banked
+
+    class Counting:
+        steps = 0
+
+        def train(self, n):
+            self.steps += n
+            return {"loss": 1.0}
+
+    strategy = Counting()
+    pace.add_frames(2000)
+    assert train_generator(strategy, pace, max_updates=30) == 30 and pace.owed == 70
+    assert train_generator(strategy, pace) == 70 and strategy.steps == 100
+
+
+def test_runner_trains_the_generator_at_the_configured_pace():
+    from higher_dist.learning.runner import SingleProcessRunner
+
+    cfg = make_config("higher", "small", frames=3000, actors=1, **{"generator.updates_per_kframe": 10.0,
+                                                                  "replay.min_size": 100})
+    runner = SingleProcessRunner(cfg)
+    runner.run(frames=3000, metrics_every=3000)
+    # Every frame of an original episode counts once; updates owed are 10 per 1000 such frames.
+    assert runner.pace.frames == runner.core.frames
+    assert runner.pace.settled == int(runner.core.frames * 10 / 1000)
+
+
+# -- the limiter and the core's counters ------------------------------------------------------------
+
+def test_limiter_tolerance_blocks_each_side_only_past_the_slack():
+    lim = SamplesPerInsertLimiter(samples_per_insert=2.0, min_size=100, tolerance=50)
+    assert lim.can_insert() and not lim.can_sample(replay_size=50, batch_size=10)  # filling up
+    lim.record_insert(150)  # 50 past min_size: the learner owes 100 samples
+    assert lim.can_sample(150, 10) and lim.can_insert() is False  # 100 owed > 50 slack: stop inserting
+    lim.record_sample(60)  # owes 40
+    assert lim.can_insert() and lim.can_sample(150, 10)
+    lim.record_sample(100)  # 60 ahead of the ratio
+    assert not lim.can_sample(150, 10)  # deficit -60 < batch 10 - slack 50
+    assert lim.can_sample(150, 0) is False and lim.ratio == pytest.approx(160 / 150)
+
+
+def test_learner_core_counts_original_and_relabelled_episodes_apart():
+    cfg = make_config("her", "small", **{"replay.min_size": 50})
+    core = LearnerCore(cfg)
+    episodes = real_episodes(cfg.world, 12, seed=1, relabelled=True)
+    core.add_episodes(episodes)
+    originals = [ep for ep in episodes if not ep.relabelled]
+    assert core.episodes == len(originals)
+    assert core.relabelled_episodes == len(episodes) - len(originals) > 0
+    assert core.frames == sum(ep.length for ep in originals)
+    assert core.success_rate_train == pytest.approx(np.mean([ep.outcome == SUCCESS for ep in originals]))
+    metrics = core.metrics()
+    assert metrics["frames"] == core.frames and metrics["replay_relabelled"] == sum(ep.length for ep in episodes if ep.relabelled)
+
+
+# -- config ---------------------------------------------------------------------------------------------
+
+def test_override_from_dict_and_validate_name_the_field():
+    cfg = make_config("her", "small")
+    assert override(cfg, **{"dqn.lr": 0.01}).dqn.lr == 0.01
+    with pytest.raises(ConfigError, match="dqn.nope"):
+        override(cfg, **{"dqn.nope": 1})
+    d = cfg.to_dict()
+    assert from_dict(d) == cfg
+    with pytest.raises(ConfigError, match="dqn.batch_size"):
+        from_dict({**d, "dqn": {**d["dqn"], "batch_size": "big"}})
+    with pytest.raises(ConfigError, match="unknown fields"):
+        from_dict({**d, "surprise": 1})
+    with pytest.raises(ConfigError, match="generator.updates_per_kframe"):
+        validate(override(cfg, **{"generator.updates_per_kframe": -1.0}))
+    with pytest.raises(ConfigError, match="replay.min_size"):
+        validate(override(cfg, **{"replay.min_size": 0}))
