@@ -191,3 +191,21 @@ def test_missing_key_files_are_named(ctx, tmp_path):
         open_channel(ctx, "control", "bind", f"tcp://127.0.0.1:{free_base_port()}", Security(str(tmp_path / "empty")))
     with pytest.raises(ValueError, match="client.key_secret is missing"):
         open_channel(ctx, "control", "connect", "tcp://127.0.0.1:1", Security(str(tmp_path / "empty")))
+
+
+def test_roles_make_sockets_only_through_open_channel():
+    """So that under --keys no socket can be made without CURVE by mistake."""
+    import re
+    from pathlib import Path
+
+    import higher_dist
+
+    root = Path(higher_dist.__file__).parent
+    offenders = []
+    for path in [*sorted((root / "roles").glob("*.py")), *sorted((root / "launch").glob("*.py"))]:
+        if path.name == "channels.py":
+            continue
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            if re.search(r"make_socket\(|\.socket\(zmq\.|CurveServer|CurveClient|start_authenticator", line):
+                offenders.append(f"{path.name}:{n}: {line.strip()}")
+    assert offenders == []
