@@ -2,9 +2,10 @@
 
 The test starts its own munged, a slurmctld and two slurmd, each slurmd in a network namespace of its own
 with a per-node name (`slurmd -N`, entered with `nsenter --net`), all on one bridge; then it submits the
-sbatch for two nodes on the small world and waits for the job to complete: learner and relabeler on the
-first node, one actor per node, CURVE keys, the head's advertised address a bridge address, never
-loopback. Then it requeues the finished job (same job id, same run folder) and checks the rerun resumes.
+sbatch for two nodes on the small world: learner and relabeler on the first node, one actor per node, CURVE
+keys, the head's advertised address a bridge address, never loopback. Mid-run the job is requeued (same job
+id, same run folder), as a preemption would; its second start resumes from the checkpoint and completes.
+Requeued once more, the finished run says there is nothing to do.
 """
 from __future__ import annotations
 
@@ -72,7 +73,7 @@ SelectTypeParameters=CR_Core
 SlurmdParameters=config_overrides
 ReturnToService=2
 InactiveLimit=0
-KillWait=5
+KillWait=20
 MinJobAge=600
 {nodes}
 PartitionName=hd Nodes=ALL Default=YES MaxTime=INFINITE State=UP
@@ -186,39 +187,61 @@ def slurm(tmp_path):
             os.kill(int(pid), 9)
 
 
+def wait_for_checkpoint(run: Path, slurm: Slurm, job_id: str, timeout: float = 240) -> int:
+    """Frames in the metrics once the learner has checkpointed mid-run (the job still running)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        records = read_metrics(run / "metrics.jsonl")
+        if (run / "learner.ckpt").exists() and records and 0 < records[-1]["frames"] < FRAMES:
+            return records[-1]["frames"]
+        state = slurm.job(job_id).get("JobState")
+        if state not in ("PENDING", "RUNNING", "CONFIGURING"):
+            pytest.fail(f"job {job_id} is {state} before its first checkpoint\n{slurm.logs()}")
+        time.sleep(0.5)
+    pytest.fail(f"no mid-run checkpoint within {timeout:.0f} s\n{slurm.logs()}")
+
+
 @pytest.mark.timeout(900)
-def test_sbatch_runs_to_completion_and_requeues_into_a_resume(slurm, tmp_path):
+def test_sbatch_runs_across_two_nodes_survives_a_requeue_and_finishes(slurm, tmp_path):
     run = tmp_path / "run"
     extra = " ".join(f"--set {k}={v}" for k, v in FAST_SETTINGS.items() if v is not None and not isinstance(v, list))
-    env = dict(slurm.env, WORLD="small", FRAMES=str(FRAMES), ACTORS_PER_NODE="1", VENV=str(Path(sys.executable).parent.parent),
-               RUN=str(run), EXTRA=f"--envs-per-actor 8 {extra}")
+    env = dict(slurm.env, WORLD="small", FRAMES=str(FRAMES), ACTORS_PER_NODE="1", RUN=str(run),
+               VENV=str(Path(sys.executable).parent.parent), EXTRA=f"--envs-per-actor 8 {extra}")
     submitted = slurm.run("sbatch", "--parsable", f"--nodes={len(NODES)}", f"--output={tmp_path}/job-%j.out",
                           f"--chdir={REPO}", str(SBATCH), env=env)
     assert submitted.returncode == 0, submitted.stderr
     job_id = submitted.stdout.strip().split(";")[0]
-    info = slurm.wait_job(job_id, timeout=420)
-    output = (tmp_path / f"job-{job_id}.out").read_text(errors="replace")
-    print(output)
-    assert info["JobState"] == "COMPLETED" and info["ExitCode"] == "0:0", f"{info}\n{output}\n{slurm.logs()}"
-    assert info["NodeList"] == "hdn[1-2]"
-    head_addr = slurm.hosts.addr("hdn1")
-    assert f"head hdn1 at {head_addr}, control tcp://{head_addr}:" in output  # a bridge address, not loopback
-    assert "learner exited with 0" in output
-    records = read_metrics(run / "metrics.jsonl")
-    assert records and records[-1]["frames"] >= FRAMES
-    seen = {row["id"] for r in records for row in r["roles"] if row["role"] == "actor"}
-    assert seen == {0, 1}, seen  # one actor per node, numbered within the learner's --actors 2
-    secret = run / "keys" / "server.key_secret"
-    assert stat.S_IMODE(secret.stat().st_mode) == 0o600
+    log = tmp_path / f"job-{job_id}.out"
 
-    # Requeue the finished job: the same job id and run folder, so the script resumes from the checkpoints.
-    first_ckpt = (run / "learner.ckpt").stat().st_mtime
+    # Preempted mid-run: Slurm requeues the job (same id, same RUN); its second start must resume.
+    at_requeue = wait_for_checkpoint(run, slurm, job_id)
     requeued = slurm.run("scontrol", "requeue", job_id)
     assert requeued.returncode == 0, requeued.stderr
+    deadline = time.monotonic() + 60
+    while slurm.job(job_id).get("JobState") != "PENDING" and time.monotonic() < deadline:
+        time.sleep(0.5)
+    slurm.run("scontrol", "update", f"JobId={job_id}", "StartTime=now")  # not the requeue's default delay
+    info = slurm.wait_job(job_id, timeout=420)
+    output = log.read_text(errors="replace")
+    print(output)
+    assert info["JobState"] == "COMPLETED" and info["ExitCode"] == "0:0", f"{info}\n{output}\n{slurm.logs()}"
+    assert info["Restarts"] == "1" and info["NodeList"] == "hdn[1-2]", info
+    head_addr = slurm.hosts.addr("hdn1")
+    assert f"head hdn1 at {head_addr}, control tcp://{head_addr}:" in output  # a bridge address, not loopback
+    second_start = output[output.rindex("head hdn1 at"):]
+    assert "--resume" in second_start.splitlines()[0] and "learner exited with 0" in second_start
+    resumed = re.search(r"resumed at (\d+) frames", second_start)
+    assert resumed and int(resumed.group(1)) > 0, second_start
+    records = read_metrics(run / "metrics.jsonl")
+    assert records[-1]["frames"] >= FRAMES > at_requeue
+    seen = {row["id"] for r in records for row in r["roles"] if row["role"] == "actor"}
+    assert seen == {0, 1}, seen  # one actor per node, numbered within the learner's --actors 2
+    assert stat.S_IMODE((run / "keys" / "server.key_secret").stat().st_mode) == 0o600
+
+    # Requeued once more after it finished: nothing left to do, and it says so.
+    assert slurm.run("scontrol", "requeue", job_id).returncode == 0
+    time.sleep(1)
     slurm.run("scontrol", "update", f"JobId={job_id}", "StartTime=now")
-    info = slurm.wait_job(job_id, timeout=300, states=("COMPLETED", "FAILED", "CANCELLED", "TIMEOUT"))
-    output = (tmp_path / f"job-{job_id}.out").read_text(errors="replace")
-    print(output[len(output) // 2:])
-    assert info["JobState"] == "COMPLETED" and info["Restarts"] == "1", f"{info}\n{output}"
-    assert output.count("learner exited with 0") == 2 and "--resume" in output
-    assert (run / "learner.ckpt").stat().st_mtime > first_ckpt
+    info = slurm.wait_job(job_id, timeout=120, states=("COMPLETED", "FAILED", "CANCELLED"))
+    assert info["JobState"] == "COMPLETED" and info["Restarts"] == "2", info
+    assert "already reached its frame budget: nothing to do" in log.read_text(errors="replace")
