@@ -190,7 +190,7 @@ def make_config(preset: str = "higher", world: str = "paper", **overrides: Any) 
         # replay fills in seconds.
         cfg = replace(
             cfg,
-            generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=20.0),
+            generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=50.0, eval_every_updates=50),
             replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
             exploration=replace(cfg.exploration, decay_frames=50_000),
             eval=EvalConfig(every_frames=10_000, episodes=32),

@@ -44,6 +44,7 @@ class RelabelStrategy:
         self.considered = 0  # wrong-pick episodes offered for relabelling
         self.relabelled = 0  # copies returned
         self.correct = 0  # copies whose instruction describes the picked object (metrics only)
+        self.contradicting = 0  # relabels dropped because they named the failed goal
 
     def observe(self, episodes: list[Episode]) -> None:
         """Learn from a batch of finished episodes (only the learned strategy does)."""
@@ -56,6 +57,17 @@ class RelabelStrategy:
     def train(self, budget_steps: int | None = None) -> dict[str, float]:
         """Spend up to `budget_steps` gradient steps on the generator (only the learned strategy does)."""
         return {}
+
+    def _not_contradicting(self, candidates: list[Episode], attrs: np.ndarray) -> np.ndarray:
+        """Indices of the relabels that do not name the goal the episode just failed. Such a copy would
+        store the same transitions with reward 1 beside the original with reward 0; it is dropped and
+        counted as `contradicting`. Compared with the mission the agent followed, not with ground truth."""
+        if not candidates:
+            return np.zeros(0, np.int64)
+        goals, _ = parse_many(np.stack([ep.mission for ep in candidates]))
+        keep = ~(np.asarray(attrs, np.int64) == goals).all(axis=1)
+        self.contradicting += int((~keep).sum())
+        return np.flatnonzero(keep)
 
     def _score(self, originals: list[Episode], new_attrs: np.ndarray) -> None:
         """Count relabels whose described object is the one picked. The only reader of `ep.picked`
@@ -73,11 +85,12 @@ class RelabelStrategy:
             "relabelled": self.relabelled,
             # None until something was relabelled: "no data", not "always wrong".
             "relabel_accuracy": self.correct / self.relabelled if self.relabelled else None,
+            "contradicting": self.contradicting,
         }
 
     def state_dict(self) -> dict[str, Any]:
         return {"name": self.name, "rng": self.rng.bit_generator.state, "considered": self.considered,
-                "relabelled": self.relabelled, "correct": self.correct}
+                "relabelled": self.relabelled, "correct": self.correct, "contradicting": self.contradicting}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["name"] != self.name:
@@ -85,6 +98,7 @@ class RelabelStrategy:
         self.rng.bit_generator.state = state["rng"]
         self.considered, self.relabelled, self.correct = (
             int(state["considered"]), int(state["relabelled"]), int(state["correct"]))
+        self.contradicting = int(state.get("contradicting", 0))
 
 
 class ExpertRelabel(RelabelStrategy):
@@ -104,6 +118,8 @@ class ExpertRelabel(RelabelStrategy):
             return []
         picked = np.stack([np.asarray(ep.picked, np.int64) for ep in candidates])
         attrs = self._attrs_for(picked)
+        keep = self._not_contradicting(candidates, attrs)
+        candidates, attrs = [candidates[i] for i in keep], attrs[keep]
         tokens = expert_tokens(attrs, self.rng)
         self._score(candidates, attrs)
         return [ep.relabel(t) for ep, t in zip(candidates, tokens)]
@@ -157,6 +173,7 @@ class LearnedRelabel(RelabelStrategy):
         attrs, ok = parse_many(tokens)
         self.unparseable += int((~ok).sum())
         kept = np.flatnonzero(ok)
+        kept = kept[self._not_contradicting([candidates[i] for i in kept], attrs[kept])]
         copies = [candidates[i].relabel(tokens[i]) for i in kept]
         self._score([candidates[i] for i in kept], attrs[kept])
         return copies

@@ -59,7 +59,8 @@ class SingleProcessRunner:
             self.core.train_available(max_updates=10_000)
             if self.agent.weights_due(before, self.core.updates):
                 self._sync_policy()
-            if evaluation.due(self.core.frames):
+            # On the cadence, and once at the end: the run's last point is greedy success at its end.
+            if evaluation.due(self.core.frames) or frames_done >= budget:
                 last_eval = self.agent.evaluate(self.policy, self.core.frames)
             if frames_done >= next_metrics or frames_done >= budget:
                 next_metrics += metrics_every
