@@ -102,7 +102,7 @@ def check_exposure(binds: dict[str, str], security: Security) -> None:
     exposed = {}
     for name, endpoint in binds.items():
         host, port = parse_endpoint(endpoint)
-        if not is_loopback(host):
+        if not is_loopback(host) and f"{host}:{port}" not in security.warned:
             exposed[name] = f"{host}:{port}"
     if not exposed:
         return
@@ -114,6 +114,7 @@ def check_exposure(binds: dict[str, str], security: Security) -> None:
             f"accept the risk with --insecure")
     log.warning("INSECURE (--insecure): %s bound without CURVE; any host that reaches these ports can read "
                 "the config, the weights and the telemetry, and push episodes", listing)
+    security.warned.update(exposed.values())  # said once per port, not again when each socket is opened
 
 
 def open_channel(ctx: zmq.Context, name: str, side: Literal["bind", "connect"], endpoint: str,

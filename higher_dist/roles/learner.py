@@ -27,8 +27,8 @@ import zmq
 from higher_dist import config as config_mod
 from higher_dist import metrics as m
 from higher_dist.config import Config
-from higher_dist.launch.channels import open_channel
-from higher_dist.launch.topology import Endpoints
+from higher_dist.launch.channels import CHANNELS, check_exposure, open_channel
+from higher_dist.launch.topology import Endpoints, bind_address
 from higher_dist.learning.agent import AgentBuilder
 from higher_dist.roles.client import REJECT_STAT_PREFIX, REJOIN
 from higher_dist.roles.evaluator import BackgroundEvaluator
@@ -50,6 +50,11 @@ class LearnerRole:
         torch.set_num_threads(cfg.torch_threads)
         torch.manual_seed(cfg.seed)
         self.cfg, self.endpoints = cfg, endpoints
+        # Without keys, every port bound beyond loopback is named at once, before anything is written:
+        # refused, or warned about under --insecure.
+        self.security = security or Security()
+        check_exposure({name: bind_address(endpoints[name], bind_host) for name, channel in CHANNELS.items()
+                        if channel.binder == "learner"}, self.security)
         self.rd = RunDir(run_dir, tensorboard=cfg.tensorboard)
         self.agent = AgentBuilder(cfg)
         self.core = self.agent.learner_core()
@@ -72,7 +77,6 @@ class LearnerRole:
         self.rd.write_config(cfg)
         ctx = zmq.Context.instance()
         # With keys, every socket is a CURVE server and only clients on the allow-list get through.
-        self.security = security or Security()
         self.control, self.experience, self.weights, self.telemetry = (
             open_channel(ctx, name, "bind", endpoints[name], self.security, bind_host)
             for name in ("control", "experience", "weights", "telemetry"))

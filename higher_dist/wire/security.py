@@ -171,6 +171,7 @@ class Security:
     keys: str | None = None
     insecure: bool = False
     client_name: str = "client"
+    warned: set[str] = field(default_factory=set, repr=False)  # HOST:PORT already warned about (--insecure)
     _auths: dict[int, ThreadAuthenticator] = field(default_factory=dict, repr=False)
 
     @property

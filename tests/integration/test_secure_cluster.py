@@ -27,6 +27,29 @@ def test_exposed_bind_without_keys_is_refused_naming_the_ports(tmp_path):
     assert not (tmp_path / "run" / "logs").exists()  # refused before any role started
 
 
+def test_learner_names_every_exposed_port_refusing_or_warning_once(tmp_path):
+    port = free_base_port("0.0.0.0")
+    argv = entry("learner", *config_flags(1000, 1), "--port-base", port, "--bind-host", "0.0.0.0",
+                 "--run-dir", tmp_path / "run")
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr
+    for i, name in enumerate(("control", "experience", "weights", "telemetry")):
+        assert f"{name} 0.0.0.0:{port + i}" in done.stderr, done.stderr
+    assert not (tmp_path / "run" / "config.json").exists()  # refused before writing anything
+    learner = subprocess.Popen([*argv, "--insecure"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        for line in learner.stdout:
+            lines.append(line)
+            if "INSECURE" in line:
+                break
+        assert all(f"0.0.0.0:{port + i}" in lines[-1] for i in range(4)), lines
+    finally:
+        learner.terminate()
+        rest = learner.communicate(timeout=60)[0]
+    assert "INSECURE" not in rest  # one warning naming every port, not one more per socket
+
+
 def test_cluster_with_keys_trains_and_only_keyed_dashboards_read_it(tmp_path):
     keys = tmp_path / "keys"
     generate_keys(keys)

@@ -161,6 +161,11 @@ def test_binding_beyond_loopback_without_keys_is_refused_unless_insecure(ctx, ke
     secured.close()
     with pytest.raises(InsecureBind, match="control \\*:5555, weights \\*:5557"):
         check_exposure({"control": "tcp://*:5555", "weights": "tcp://*:5557"}, Security())
+    insecure, caplog_records = Security(insecure=True), len(caplog.records)
+    with caplog.at_level(logging.WARNING, logger="higher_dist.channels"):
+        check_exposure({"control": "tcp://*:5555", "weights": "tcp://*:5557"}, insecure)
+        check_exposure({"control": "tcp://*:5555"}, insecure)  # e.g. when the socket itself is opened
+    assert len(caplog.records) == caplog_records + 1  # each exposed port is named once, not per check
 
 
 def test_is_loopback():
