@@ -204,8 +204,9 @@ class LearnerRole:
         try:
             episodes = unpack_episodes(
                 msg, self.core.spec, reject=lambda reason: self.rejects.add(reason, where="experience"),
-                allow_relabelled=msg.sender == "relabeler", n_actors=self.cfg.actors,
-                max_weights_version=self.weights_version)
+                # No bound on the episodes' weights versions: after a learner restart without a
+                # checkpoint, honest actors still act with the previous instance's newer versions.
+                allow_relabelled=msg.sender == "relabeler", n_actors=self.cfg.actors)
         except codec.WireError as e:
             self.rejects.add(e.reason, e.detail, "experience")
             return
