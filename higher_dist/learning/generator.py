@@ -54,7 +54,8 @@ class InstructionGenerator(nn.Module):
         self.mission_len = spec.mission_len
         self.front = front_cell(spec.view_size)
         self.encoder = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), in_frames=1, spec=spec)
-        self.context = nn.Linear(self.encoder.out_dim + cfg.embed_dim, cfg.hidden)
+        self.shortcut = bool(cfg.front_cell_shortcut)  # off: the paper's generator, conv features only
+        self.context = nn.Linear(self.encoder.out_dim + (cfg.embed_dim if self.shortcut else 0), cfg.hidden)
         self.init_hidden = nn.Linear(cfg.hidden, cfg.hidden)
         self.word_embed = nn.Embedding(vocab_size, cfg.word_embed_dim, padding_idx=PAD)
         # The context is fed at every step as well as through the initial state, so the decoder never
@@ -72,6 +73,8 @@ class InstructionGenerator(nn.Module):
             raise ValueError(f"views: expected (B, {self.view_size}, {self.view_size}, 4), got {tuple(views.shape)}")
         stacked = views[:, None]  # a "stack" of one frame, as the encoder takes
         maps = self.encoder(stacked).flatten(1)
+        if not self.shortcut:
+            return F.relu(self.context(maps))
         r, c = self.front
         # The front cell through the same (shared) embedding, as a 1x1 view.
         cell = self.encoder.embed_views(stacked[:, :, r:r + 1, c:c + 1]).flatten(1)
@@ -143,6 +146,12 @@ def decoder_targets(missions: torch.Tensor) -> torch.Tensor:
     return targets
 
 
+def inference_batch(n: int) -> int:
+    """The batch size `n` views are padded to for greedy decoding: the next power of two, at least 8 and
+    at most EVAL_CHUNK, so decoding only ever sees a handful of shapes."""
+    return min(EVAL_CHUNK, max(8, 1 << (max(n, 1) - 1).bit_length()))
+
+
 class GeneratorTrainer:
     """Model + Adam + dataset, with the gate that says when the generator may relabel."""
 
@@ -160,6 +169,7 @@ class GeneratorTrainer:
         self.evaluations = 0
         self.val_accuracy = 0.0  # exact match at the last evaluate(); 0 until the first one
         self.last_eval: dict[str, float] = {}
+        self.val_at_pairs = 0  # dataset size (pairs) when val_accuracy was measured
         self.last_loss = float("nan")
 
     def observe_episodes(self, episodes: list[Episode]) -> int:
@@ -191,8 +201,15 @@ class GeneratorTrainer:
         if views.shape[0] == 0:
             return np.zeros((0, self.model.mission_len), np.int64)
         self.model.eval()
-        chunks = [self.model.greedy(torch.as_tensor(views[i:i + EVAL_CHUNK], device=self.device)).cpu().numpy()
-                  for i in range(0, views.shape[0], EVAL_CHUNK)]
+        chunks = []
+        for i in range(0, views.shape[0], EVAL_CHUNK):
+            chunk = views[i:i + EVAL_CHUNK]
+            # Pad to a few fixed batch sizes: the CPU kernels cache per input shape, and the relabeler
+            # sees every batch size from 1 up, which grew its memory by ~70 MiB before it levelled off.
+            padded = np.zeros((inference_batch(len(chunk)), *chunk.shape[1:]), chunk.dtype)
+            padded[: len(chunk)] = chunk
+            out = self.model.greedy(torch.as_tensor(padded, device=self.device)).cpu().numpy()
+            chunks.append(out[: len(chunk)])
         return np.concatenate(chunks).astype(np.int64)
 
     def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray) -> dict[str, float]:
@@ -204,6 +221,7 @@ class GeneratorTrainer:
         """Accuracy on the validation split; its exact match becomes `val_accuracy` (the gate's input)."""
         result = self.evaluate_pairs(*self.dataset.validation())
         self.val_accuracy = result["exact"]
+        self.val_at_pairs = len(self.dataset)
         self.last_eval = result
         self.evaluations += 1
         return result
@@ -222,7 +240,7 @@ class GeneratorTrainer:
                 "optimizer": copy.deepcopy(self.optimizer.state_dict()),
                 "dataset": self.dataset.state_dict(), "rng": self.rng.bit_generator.state,
                 "steps": self.steps, "evaluations": self.evaluations, "val_accuracy": self.val_accuracy,
-                "last_eval": dict(self.last_eval), "last_loss": self.last_loss}
+                "val_at_pairs": self.val_at_pairs, "last_eval": dict(self.last_eval), "last_loss": self.last_loss}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.model.load_state_dict(state["model"])
@@ -231,5 +249,6 @@ class GeneratorTrainer:
         self.rng.bit_generator.state = state["rng"]
         self.steps, self.evaluations = int(state["steps"]), int(state["evaluations"])
         self.val_accuracy = float(state["val_accuracy"])
+        self.val_at_pairs = int(state.get("val_at_pairs", 0))
         self.last_eval = dict(state["last_eval"])
         self.last_loss = float(state["last_loss"])
