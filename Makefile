@@ -5,7 +5,17 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 TORCH_VERSION ?= 2.13.0
 
-.PHONY: install test test-fast cluster bench bench-time lint clean
+.PHONY: install test test-fast cluster bench bench-time reproduce lint clean
+
+# `make reproduce -- --dry-run --seeds 2 main`: the words after `reproduce` are higher-reproduce's
+# arguments (write `--seeds 2`, not `--seeds=2`: make takes NAME=VALUE words as its own variables).
+# They become targets of make too, so they get an empty rule here. ARGS="..." works as well.
+ifeq (reproduce,$(firstword $(MAKECMDGOALS)))
+REPRODUCE_ARGS := $(wordlist 2,$(words $(MAKECMDGOALS)),$(MAKECMDGOALS))
+ifneq ($(REPRODUCE_ARGS),)
+$(eval $(REPRODUCE_ARGS):;@:)
+endif
+endif
 
 install: $(STAMP)
 
@@ -26,6 +36,9 @@ test-fast: install
 
 cluster: install
 	$(BIN)/higher-cluster --preset higher --world paper $(ARGS)
+
+reproduce: install
+	$(BIN)/higher-reproduce $(REPRODUCE_ARGS) $(ARGS)
 
 bench: install
 	mkdir -p results

@@ -7,7 +7,7 @@ import json
 import sys
 from typing import Any, Callable
 
-from higher_dist.config import PRESETS, WORLDS, Config, ConfigError, make_config
+from higher_dist.config import PRESETS, PROFILES, WORLDS, Config, ConfigError, make_config
 
 
 def _die(prog: str, message: str) -> int:
@@ -35,6 +35,8 @@ def _positive_int(text: str) -> int:
 def add_config_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", choices=PRESETS, default="higher", help="the paper's method to run")
     p.add_argument("--world", choices=WORLDS, default="paper", help="paper: 10x10, 10 objects; small: tests")
+    p.add_argument("--profile", choices=PROFILES, default="default",
+                   help="default: our tuned settings; paper: the paper's (docs/paper_settings.md)")
     p.add_argument("--actors", type=_positive_int, default=None,
                    help="actor processes (higher-cluster's default fits the machine: half its cores, 1 to 8)")
     p.add_argument("--envs-per-actor", type=_positive_int, default=None, help="environments per actor")
@@ -58,7 +60,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
             raise ConfigError(f"--set {item!r}: expected FIELD=VALUE")
         key, value = item.split("=", 1)
         overrides[key.strip()] = _parse_value(value)
-    cfg = make_config(args.preset, args.world, **overrides)
+    cfg = make_config(args.preset, args.world, args.profile, **overrides)
     # Round trip through the wire form so --set values get the declared types (e.g. tuples).
     from higher_dist.config import from_dict
 
@@ -234,6 +236,18 @@ def bench_main(argv: list[str] | None = None) -> int:
 
 def plot_main(argv: list[str] | None = None) -> int:
     from higher_dist.plot import main
+
+    return main(sys.argv[1:] if argv is None else argv)
+
+
+def reproduce_main(argv: list[str] | None = None) -> int:
+    from higher_dist.reproduce.cli import main
+
+    return main(sys.argv[1:] if argv is None else argv)
+
+
+def render_main(argv: list[str] | None = None) -> int:
+    from higher_dist.render import main
 
     return main(sys.argv[1:] if argv is None else argv)
 

@@ -19,6 +19,11 @@ SIZES = ("tiny", "small", "medium", "large", "giant")
 
 PRESETS = ("dqn", "her", "noisy-her", "higher", "reward")
 WORLDS = ("paper", "small")
+RATIO_COUNTS = ("env_frames", "transitions")
+# Profiles apply a whole set of choices on top of a preset and a world (before --set overrides):
+# "default" is ours (docs/decisions.md), "paper" the paper's (docs/paper_settings.md lists every
+# difference, and the paper's settings that stay options).
+PROFILES = ("default", "paper")  # what the samples-per-insert limiter counts as inserts
 
 
 class ConfigError(ValueError):
@@ -58,8 +63,10 @@ class NetworkConfig:
 
 @dataclass(frozen=True)
 class DQNConfig:
-    batch_size: int = 64
-    lr: float = 5e-4
+    # Tuned on the paper world (docs/decisions.md, "Tuning on the paper world"); the small world keeps
+    # the batch 64 / 5e-4 it was tuned with (make_config).
+    batch_size: int = 256
+    lr: float = 1e-3
     adam_eps: float = 1e-6
     gamma: float = 0.99
     n_step: int = 3
@@ -87,6 +94,14 @@ class ReplayConfig:
     beta_frames: int = 5_000_000  # frames over which beta anneals to beta_end
     min_size: int = 2_000  # transitions before learning starts
     samples_per_insert: float = 8.0  # replay ratio kept by the rate limiter (as in Reverb)
+    # What one "insert" of that ratio is. "env_frames": frames of original episodes only, so every
+    # method gets the same updates per env frame (the comparison between methods uses this);
+    # "transitions": every stored transition, relabelled copies included (HER and HIGhER then get up
+    # to ~1.4x the updates of DQN per env frame).
+    ratio_counts: str = "env_frames"
+    # False: a time-out is a truncation and bootstraps from its last frame (correct for a time limit
+    # the agent cannot see). True: stored as terminal, as the paper's code did.
+    timeouts_terminal: bool = False
     priority_eps: float = 1e-3
     checkpoint_replay: bool = False
 
@@ -99,6 +114,10 @@ class ExplorationConfig:
     eps_start: float = 1.0  # linear decay (the paper's schedule)
     eps_end: float = 0.05
     decay_frames: int = 1_000_000
+    # apex only: every slot starts at epsilon 1.0 and decays linearly to its rung of the ladder over
+    # this many env frames (0: the ladder from the start). Early random picks feed HER its wrong picks
+    # and HIGhER's generator its first successes, while the greedy rungs take over later.
+    warmup_frames: int = 0
 
 
 @dataclass(frozen=True)
@@ -113,6 +132,9 @@ class GeneratorConfig:
     capacity: int = 20_000  # (observation, instruction) pairs kept, FIFO
     val_fraction: float = 0.1
     n_min: int = 1000  # gate: pairs needed before relabelling (paper: 1000)
+    # The summed embedding of the cell in front (where a picked object lies) fed straight to the
+    # decoder: ~99% exact match at 5000 pairs, against ~70% for the paper's generator, which has none.
+    front_cell_shortcut: bool = True
     min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
     # Training pace, as data: generator updates per 1000 env frames of original episodes. The runner and
     # the relabeler service both enforce it (learning/agent.GeneratorPace), so the generator's training
@@ -126,18 +148,21 @@ class GeneratorConfig:
 @dataclass(frozen=True)
 class RelabelConfig:
     strategy: str = "none"  # none | expert | noisy | learned
-    noise_p: float = 0.2  # noisy expert: each attribute resampled with this probability
+    noise_p: float = 0.2  # noisy expert: each attribute swapped to another value with this probability
 
 
 @dataclass(frozen=True)
 class EvalConfig:
     every_frames: int = 50_000
-    episodes: int = 64  # per goal set (training and held-out) each time
+    # Per goal set (training and held-out) each time, one per environment (unbiased): 256 puts the
+    # standard error at 3 points or less.
+    episodes: int = 256
 
 
 @dataclass(frozen=True)
 class Config:
     preset: str = "higher"
+    profile: str = "default"  # see PROFILES
     world: WorldConfig = field(default_factory=WorldConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     dqn: DQNConfig = field(default_factory=DQNConfig)
@@ -180,10 +205,14 @@ def world_by_name(name: str) -> WorldConfig:
     raise ConfigError(f"world: unknown world {name!r}; choose one of {', '.join(WORLDS)}")
 
 
-def make_config(preset: str = "higher", world: str = "paper", **overrides: Any) -> Config:
-    """The config of one of the paper's methods on a named world; top-level fields may be overridden."""
+def make_config(preset: str = "higher", world: str = "paper", profile: str = "default",
+                **overrides: Any) -> Config:
+    """The config of one of the paper's methods on a named world under a profile; any field may then
+    be overridden by dotted name."""
     if preset not in PRESETS:
         raise ConfigError(f"preset: unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if profile not in PROFILES:
+        raise ConfigError(f"profile: unknown profile {profile!r}; choose one of {', '.join(PROFILES)}")
     w = world_by_name(world)
     relabel = {
         "dqn": RelabelConfig("none"), "reward": RelabelConfig("none"), "her": RelabelConfig("expert"),
@@ -198,16 +227,52 @@ def make_config(preset: str = "higher", world: str = "paper", **overrides: Any) 
         # loss would cost more CPU than it saves.
         cfg = replace(
             cfg,
+<<<<<<< HEAD
             dqn=replace(cfg.dqn, compile=False),
+=======
+            dqn=replace(cfg.dqn, batch_size=64, lr=5e-4),
+>>>>>>> 6e6a75bab178a31f95603106ac7d20d4e7c34973
             generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=50.0, eval_every_updates=50),
             replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
             exploration=replace(cfg.exploration, decay_frames=50_000),
             eval=EvalConfig(every_frames=10_000, episodes=32),
             frames=200_000, envs_per_actor=16,
         )
+    else:
+        cfg = PAPER_WORLD_TUNING.get(preset, lambda c: c)(cfg)
+    if profile == "paper":
+        cfg = paper_profile(cfg)
     cfg = override(cfg, **overrides)
     cfg = from_dict(cfg.to_dict())  # types first: --set dqn.lr=fast is refused, not a TypeError
     return cfg
+
+
+def _higher_on_the_paper_world(cfg: Config) -> Config:
+    # Measured (docs/decisions.md): with the generator gated at 1000 pairs and the plain Ape-X ladder,
+    # HIGhER had 295 pairs at 421k frames and never relabelled; its generator passes 0.5 exact match
+    # near 150-200 pairs. Every slot starting at epsilon 1.0 (random picks succeed ~5% of the time:
+    # ~1.8 pairs per 1000 frames) and a 100-pair minimum behind the accuracy gate opened it at 88k.
+    return replace(cfg, generator=replace(cfg.generator, n_min=100),
+                   exploration=replace(cfg.exploration, warmup_frames=200_000))
+
+
+# Per-preset settings measured on the paper world, applied on top of the dataclass defaults.
+PAPER_WORLD_TUNING = {"higher": _higher_on_the_paper_world}
+PAPER_DECAY_FRAMES = {"higher": 400_000}  # the paper's linear epsilon span; 100_000 for the others
+
+
+def paper_profile(cfg: Config) -> Config:
+    """The paper's settings on top of a preset (DESIGN.md section 7): the generator without the
+    front-cell shortcut, used ungated from 1000 pairs, and epsilon linear from 1.0 to 0.05 over 1e5
+    frames (4e5 for HIGhER). Its replay ratio (128 samples per frame, batch 128) and terminal
+    time-outs stay options (docs/paper_settings.md): on a 2-core machine the first costs ~16x the
+    learner time per frame."""
+    return replace(
+        cfg, profile="paper",
+        generator=replace(cfg.generator, front_cell_shortcut=False, n_min=1000, min_accuracy=0.0),
+        exploration=replace(cfg.exploration, kind="linear", eps_start=1.0, eps_end=0.05,
+                            decay_frames=PAPER_DECAY_FRAMES.get(cfg.preset, 100_000)),
+    )
 
 
 def override(cfg: Config, **overrides: Any) -> Config:
@@ -307,6 +372,7 @@ def validate_world(w: WorldConfig) -> None:
 def validate(cfg: Config) -> None:
     """Refuse a config that cannot work, naming the field."""
     _check(cfg.preset in PRESETS, f"preset: unknown preset {cfg.preset!r}; choose one of {', '.join(PRESETS)}")
+    _check(cfg.profile in PROFILES, f"profile: unknown profile {cfg.profile!r}; choose one of {', '.join(PROFILES)}")
     validate_world(cfg.world)
     w = cfg.world
     n = cfg.network
@@ -325,9 +391,12 @@ def validate(cfg: Config) -> None:
     _check(0 < r.min_size <= r.capacity, f"replay.min_size: must be in (0, capacity={r.capacity}], got {r.min_size}")
     _check(r.alpha >= 0 and 0 <= r.beta_start <= 1 and 0 <= r.beta_end <= 1, "replay: alpha >= 0 and betas in [0, 1]")
     _check(r.samples_per_insert > 0, f"replay.samples_per_insert: must be > 0, got {r.samples_per_insert}")
+    _check(r.ratio_counts in RATIO_COUNTS,
+           f"replay.ratio_counts: must be {' or '.join(RATIO_COUNTS)}, got {r.ratio_counts!r}")
     e = cfg.exploration
     _check(e.kind in ("apex", "linear"), f"exploration.kind: must be apex or linear, got {e.kind!r}")
     _check(0 <= e.eps_base <= 1 and 0 <= e.eps_end <= e.eps_start <= 1, "exploration: epsilons must lie in [0, 1], end <= start")
+    _check(e.warmup_frames >= 0, f"exploration.warmup_frames: must be >= 0, got {e.warmup_frames}")
     g = cfg.generator
     _check(0 < g.val_fraction < 1, f"generator.val_fraction: must be in (0, 1), got {g.val_fraction}")
     _check(0 <= g.min_accuracy <= 1, f"generator.min_accuracy: must be in [0, 1], got {g.min_accuracy}")

@@ -26,7 +26,9 @@ EPSILON_MEAN = "epsilon_mean"
 SUCCESS_EVAL_TRAIN = "success_rate_eval_train"
 SUCCESS_EVAL_HELDOUT = "success_rate_eval_heldout"
 SUCCESS_TRAIN = "success_rate_train"
-EVAL_KEYS = (SUCCESS_EVAL_TRAIN, SUCCESS_EVAL_HELDOUT)
+SE_SUFFIX = "_se"  # + on an eval key: its standard error, sqrt(p (1 - p) / episodes)
+EVAL_KEYS = (SUCCESS_EVAL_TRAIN, SUCCESS_EVAL_HELDOUT, SUCCESS_EVAL_TRAIN + SE_SUFFIX,
+             SUCCESS_EVAL_HELDOUT + SE_SUFFIX)
 
 # -- replay and learning --------------------------------------------------------------------------
 REPLAY_SIZE = "replay_size"
@@ -38,11 +40,14 @@ Q_MEAN = "q_mean"
 
 # -- relabelling ----------------------------------------------------------------------------------
 RELABEL_STRATEGY = "relabel_strategy"
-GENERATOR_VAL_ACCURACY = "generator_val_accuracy"
+GENERATOR_VAL_ACCURACY = "generator_val_accuracy"  # as of its latest evaluation (None before the first)
+GENERATOR_VAL_AT_PAIRS = "generator_val_at_pairs"  # dataset size at that evaluation
 RELABEL_DATASET_SIZE = "relabel_dataset_size"
 RELABEL_GATE_OPEN = "relabel_gate_open"
-RELABEL_ACCURACY = "relabel_accuracy"
+RELABEL_ACCURACY = "relabel_accuracy"  # over the last relabel.RECENT_RELABELS relabels
+RELABEL_ACCURACY_TOTAL = "relabel_accuracy_total"  # since the start of the run
 RELABEL_UNPARSEABLE = "relabel_unparseable"
+RELABEL_CONTRADICTING = "relabel_contradicting"  # learned relabels naming the failed goal, dropped
 GENERATOR_LOSS = "generator_loss"
 RELABELS_PER_S = "relabels_per_s"
 
@@ -59,7 +64,7 @@ LABELS: dict[str, str] = {
     SUCCESS_EVAL_HELDOUT: "greedy success, held-out goals",
     SUCCESS_TRAIN: "training success (exploring, epsilon-greedy)",
     GENERATOR_VAL_ACCURACY: "generator exact match (validation)",
-    RELABEL_ACCURACY: "relabel accuracy",
+    RELABEL_ACCURACY: "relabel accuracy (last 1000 relabels)",
     RELABEL_DATASET_SIZE: "generator pairs",
     RELABEL_GATE_OPEN: "generator gate open",
     REPLAY_RATIO: "samples per insert",
@@ -85,6 +90,8 @@ def relabel_record(strategy_metrics: dict) -> dict:
     return {
         RELABEL_STRATEGY: s.get("strategy"), GENERATOR_VAL_ACCURACY: s.get("val_accuracy"),
         RELABEL_DATASET_SIZE: s.get("dataset_size"), RELABEL_GATE_OPEN: s.get("gate_open"),
-        RELABEL_ACCURACY: s.get("relabel_accuracy"), RELABEL_UNPARSEABLE: s.get("unparseable"),
+        GENERATOR_VAL_AT_PAIRS: s.get("val_at_pairs"),
+        RELABEL_ACCURACY: s.get("relabel_accuracy"), RELABEL_ACCURACY_TOTAL: s.get("relabel_accuracy_total"),
+        RELABEL_UNPARSEABLE: s.get("unparseable"), RELABEL_CONTRADICTING: s.get("contradicting"),
         GENERATOR_LOSS: s.get("loss"),
     }

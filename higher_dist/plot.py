@@ -8,6 +8,9 @@ common frames grid and drawn as a mean with a min-max band.
 
 Writes success_rate.png, success_rate_heldout.png (when held-out evaluations exist),
 generator_accuracy.png (when a generator was trained) and replay_composition.png.
+
+Given a `higher-reproduce` folder (one holding plan.json), it draws that plan's figures instead (mean and
+one standard deviation over seeds, into DIR/figures) and rewrites DIR/results.md.
 """
 from __future__ import annotations
 
@@ -128,6 +131,8 @@ def plot_success(runs: list[Run], key_for, title: str, out: Path) -> Path:
     for i, (preset, group) in enumerate(sorted(by_preset.items())):
         colour = f"C{i % 10}"
         curves = [run.series(key_for(run)) for run in group]
+        if any(key_for(run) == "success_rate_train" for run in group):
+            preset = f"{preset} (exploring)"  # no greedy evaluation in these runs: say what is drawn
         band = mean_band(curves) if len(group) > 1 else None
         if band is not None:
             grid, mean, low, high = band
@@ -221,6 +226,11 @@ def main(argv: list[str]) -> int:
     parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories (or a folder of runs)")
     parser.add_argument("--out", default="plots", help="where the PNG files go (default: ./plots)")
     args = parser.parse_args(argv)
+    if len(args.runs) == 1 and (Path(args.runs[0]) / "plan.json").is_file():
+        # A higher-reproduce folder: the paper's figures (mean and one std over seeds) and results.md.
+        from higher_dist.reproduce.cli import report
+
+        return report(Path(args.runs[0]))
     try:
         runs = find_runs(args.runs)
     except NoRun as e:
@@ -234,11 +244,14 @@ def main(argv: list[str]) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    written = [plot_success(runs, success_key, "Success rate on training goals", out / "success_rate.png")]
+    greedy = all(success_key(run) == "success_rate_eval_train" for run in runs)
+    title = ("Greedy success on training goals" if greedy
+             else "Success on training goals (greedy where evaluated, else while exploring)")
+    written = [plot_success(runs, success_key, title, out / "success_rate.png")]
     heldout = [run for run in runs if run.has("success_rate_eval_heldout")]
     if heldout:
         written.append(plot_success(heldout, lambda run: "success_rate_eval_heldout",
-                                    "Success rate on held-out goals", out / "success_rate_heldout.png"))
+                                    "Greedy success on held-out goals", out / "success_rate_heldout.png"))
     generator_runs = [run for run in runs if run.has("generator_val_accuracy") or run.has("relabel_accuracy")]
     if generator_runs:
         written.append(plot_generator(generator_runs, out / "generator_accuracy.png"))

@@ -208,6 +208,8 @@ def _summary(r: dict) -> str:
         return "-" if v is None else fmt.format(v)
 
     return (f"frames {f('frames')} | {f('frames_per_s', '{:.0f}')} fps | updates {f('updates')} "
-            f"({f('updates_per_s', '{:.1f}')}/s) | success {f('success_rate_train', '{:.2f}')} | "
+            f"({f('updates_per_s', '{:.1f}')}/s) | greedy {f('success_rate_eval_train', '{:.2f}')}"
+            f"±{f('success_rate_eval_train_se', '{:.2f}')} held-out {f('success_rate_eval_heldout', '{:.2f}')} | "
+            f"exploring {f('success_rate_train', '{:.2f}')} | "
             f"relabelled {f('relabelled_episodes')} | gen acc {f('generator_val_accuracy', '{:.2f}')} | "
             f"rejected {f('rejected_messages')}")

@@ -98,10 +98,15 @@ def free_base_port(host: str = DEFAULT_HOST, span: int = 5, tries: int = 200) ->
 
 
 def check_free(endpoints: "Endpoints", bind_host: str | None = None) -> None:
-    """Refuse, with a message that says what to do, to start on ports that something already holds."""
+    """Refuse, with a message that says what to do, to start on ports that something already holds.
+
+    SO_REUSEADDR, as libzmq's own listeners use: a port whose last connections sit in TIME_WAIT (a run
+    that just ended) is free to bind, so runs can follow one another; a port something listens on is not.
+    """
     for name, endpoint in endpoints.as_dict().items():
         host, port = parse_endpoint(endpoint)
         s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((bind_host or host, port))
         except OSError as e:

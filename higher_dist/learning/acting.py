@@ -6,13 +6,14 @@ The same collector serves the cluster's actors, the single-process runner and ev
 """
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import numpy as np
 import torch
 
 from higher_dist.config import NetworkConfig, WorldConfig
-from higher_dist.learning.episode import Episode
+from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.exploration import epsilon_greedy
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
 from higher_dist.world.grid import BatchedFetchAttr
@@ -38,6 +39,7 @@ class EpisodeCollector:
         self._frames[:, 0] = view
         self.stack = np.repeat(view[:, None], frame_stack, axis=1)
         self.weights_version = 0
+        self.last_outcome = np.full(n_envs, -1, np.int8)  # per env, of the last step; -1: still running
 
     def observation(self) -> tuple[np.ndarray, np.ndarray]:
         """The policy's input: (B, k, V, V, 4) uint8 frame stacks and (B, L) mission tokens."""
@@ -46,6 +48,7 @@ class EpisodeCollector:
     def step(self, actions: np.ndarray) -> list[Episode]:
         """Step every environment once; return the episodes that finished on this step."""
         res = self.world.step(actions)
+        self.last_outcome = res.outcome
         rows = self._rows
         self._actions[rows, self._t] = actions
         self._rewards[rows, self._t] = res.reward
@@ -99,21 +102,46 @@ def act(collector: EpisodeCollector, q_fn: QFunction, eps: np.ndarray, rng: np.r
 
 
 def evaluate(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, episodes: int, goal_set: str,
-             seed: int, n_envs: int = 32) -> float:
-    """Greedy success rate over `episodes` episodes whose goals come from `goal_set` (train|heldout)."""
-    collector = EpisodeCollector(world_cfg, min(n_envs, episodes), frame_stack, seed, goal_set=goal_set)
-    rng = np.random.default_rng(seed)
+             seed: int, n_envs: int = 256) -> tuple[float, float]:
+    """Greedy success rate over `episodes` episodes whose goals come from `goal_set` (train|heldout),
+    and its standard error.
+
+    Exactly one episode per environment: `episodes` environments (in batches of at most `n_envs`) each
+    run their first episode to its end, and only that episode counts. Keeping the first `episodes`
+    episodes to finish instead would over-count short ones (successes end early, time-outs last the
+    whole step limit), biasing the rate upwards.
+    """
+    if episodes < 1:
+        raise ValueError(f"episodes: must be >= 1, got {episodes}")
+    successes = 0
+    for start in range(0, episodes, n_envs):
+        size = min(n_envs, episodes - start)
+        # Env i of this batch draws from [seed + start, i]: batches never repeat an episode.
+        collector = EpisodeCollector(world_cfg, size, frame_stack, seed + start, goal_set=goal_set)
+        successes += _first_episode_successes(collector, q_fn, np.random.default_rng(seed))
+    rate = successes / episodes
+    return rate, math.sqrt(rate * (1.0 - rate) / episodes)
+
+
+def _first_episode_successes(collector: EpisodeCollector, q_fn: QFunction, rng: np.random.Generator) -> int:
+    """Step every env greedily until each has ended its first episode; count the successes among those."""
     zero = np.zeros(collector.n_envs)
-    results: list[int] = []
-    while len(results) < episodes:
-        for ep in act(collector, q_fn, zero, rng):
-            results.append(int(ep.outcome == 0))
-    return float(np.mean(results[:episodes]))
+    first_outcome = np.full(collector.n_envs, -1)
+    while (first_outcome < 0).any():
+        obs, mission = collector.observation()
+        collector.step(epsilon_greedy(q_fn(obs, mission), zero, rng))
+        outcome = collector.last_outcome  # RUNNING (-1) where the episode goes on
+        first_outcome = np.where((first_outcome < 0) & (outcome >= 0), outcome, first_outcome)
+    return int((first_outcome == SUCCESS).sum())
 
 
 def evaluate_goal_sets(q_fn: QFunction, cfg, seed: int) -> dict[str, float]:
-    """The periodic evaluation of a run (`cfg`: Config): greedy success on training and held-out goals."""
+    """The periodic evaluation of a run (`cfg`: Config): greedy success on training and held-out goals,
+    each with its standard error (`_se`)."""
     k, n = cfg.network.frame_stack, cfg.eval.episodes
-    return {"success_rate_eval_train": evaluate(q_fn, cfg.world, k, n, "train", seed),
-            "success_rate_eval_heldout": evaluate(q_fn, cfg.world, k, n, "heldout", seed)}
-
+    out: dict[str, float] = {}
+    for goal_set in ("train", "heldout"):
+        rate, se = evaluate(q_fn, cfg.world, k, n, goal_set, seed)
+        out[f"success_rate_eval_{goal_set}"] = round(rate, 4)
+        out[f"success_rate_eval_{goal_set}_se"] = round(se, 4)
+    return out

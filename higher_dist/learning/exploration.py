@@ -42,8 +42,9 @@ def actor_epsilons(cfg: ExplorationConfig, actor_index: int, n_actors: int, n_en
                    frame: int) -> np.ndarray:
     """The epsilon of each of one actor's n_envs environments, shape (n_envs,).
 
-    apex: fixed rungs of a ladder spread over all n_actors * n_envs env slots (see the module notes);
-    `frame` is unused. linear: every env uses the decayed epsilon at `frame` (the run's env frames).
+    apex: fixed rungs of a ladder spread over all n_actors * n_envs env slots (see the module notes),
+    reached linearly from 1.0 over the first `warmup_frames` of `frame` (the run's env frames).
+    linear: every env uses the decayed epsilon at `frame`.
     """
     if not 0 <= actor_index < n_actors:
         raise ValueError(f"actor_index must be in [0, {n_actors}), got {actor_index}")
@@ -51,7 +52,10 @@ def actor_epsilons(cfg: ExplorationConfig, actor_index: int, n_actors: int, n_en
         raise ValueError(f"n_envs must be >= 1, got {n_envs}")
     if cfg.kind == "apex":
         ladder = apex_epsilons(n_actors * n_envs, cfg.eps_base, cfg.apex_alpha)
-        return ladder[np.arange(n_envs) * n_actors + actor_index]
+        rungs = ladder[np.arange(n_envs) * n_actors + actor_index]
+        if cfg.warmup_frames > 0 and frame < cfg.warmup_frames:
+            rungs = rungs + (1.0 - rungs) * (1.0 - frame / cfg.warmup_frames)
+        return rungs
     if cfg.kind == "linear":
         return np.full(n_envs, linear_epsilon(frame, cfg), dtype=np.float64)
     raise ValueError(f"unknown exploration kind {cfg.kind!r}; choose apex or linear")

@@ -54,7 +54,8 @@ class InstructionGenerator(nn.Module):
         self.mission_len = spec.mission_len
         self.front = front_cell(spec.view_size)
         self.encoder = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), in_frames=1, spec=spec)
-        self.context = nn.Linear(self.encoder.out_dim + cfg.embed_dim, cfg.hidden)
+        self.shortcut = bool(cfg.front_cell_shortcut)  # off: the paper's generator, conv features only
+        self.context = nn.Linear(self.encoder.out_dim + (cfg.embed_dim if self.shortcut else 0), cfg.hidden)
         self.init_hidden = nn.Linear(cfg.hidden, cfg.hidden)
         self.word_embed = nn.Embedding(vocab_size, cfg.word_embed_dim, padding_idx=PAD)
         # The context is fed at every step as well as through the initial state, so the decoder never
@@ -72,6 +73,8 @@ class InstructionGenerator(nn.Module):
             raise ValueError(f"views: expected (B, {self.view_size}, {self.view_size}, 4), got {tuple(views.shape)}")
         stacked = views[:, None]  # a "stack" of one frame, as the encoder takes
         maps = self.encoder(stacked).flatten(1)
+        if not self.shortcut:
+            return F.relu(self.context(maps))
         r, c = self.front
         # The front cell through the same (shared) embedding, as a 1x1 view.
         cell = self.encoder.embed_views(stacked[:, :, r:r + 1, c:c + 1]).flatten(1)
@@ -160,6 +163,7 @@ class GeneratorTrainer:
         self.evaluations = 0
         self.val_accuracy = 0.0  # exact match at the last evaluate(); 0 until the first one
         self.last_eval: dict[str, float] = {}
+        self.val_at_pairs = 0  # dataset size (pairs) when val_accuracy was measured
         self.last_loss = float("nan")
 
     def observe_episodes(self, episodes: list[Episode]) -> int:
@@ -204,6 +208,7 @@ class GeneratorTrainer:
         """Accuracy on the validation split; its exact match becomes `val_accuracy` (the gate's input)."""
         result = self.evaluate_pairs(*self.dataset.validation())
         self.val_accuracy = result["exact"]
+        self.val_at_pairs = len(self.dataset)
         self.last_eval = result
         self.evaluations += 1
         return result
@@ -222,7 +227,7 @@ class GeneratorTrainer:
                 "optimizer": copy.deepcopy(self.optimizer.state_dict()),
                 "dataset": self.dataset.state_dict(), "rng": self.rng.bit_generator.state,
                 "steps": self.steps, "evaluations": self.evaluations, "val_accuracy": self.val_accuracy,
-                "last_eval": dict(self.last_eval), "last_loss": self.last_loss}
+                "val_at_pairs": self.val_at_pairs, "last_eval": dict(self.last_eval), "last_loss": self.last_loss}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.model.load_state_dict(state["model"])
@@ -231,5 +236,6 @@ class GeneratorTrainer:
         self.rng.bit_generator.state = state["rng"]
         self.steps, self.evaluations = int(state["steps"]), int(state["evaluations"])
         self.val_accuracy = float(state["val_accuracy"])
+        self.val_at_pairs = int(state.get("val_at_pairs", 0))
         self.last_eval = dict(state["last_eval"])
         self.last_loss = float(state["last_loss"])

@@ -45,9 +45,12 @@ class LearnerCore:
     # -- experience -------------------------------------------------------------------------------
     def add_episodes(self, episodes: list[Episode]) -> None:
         self._settle()
+        count_copies = self.cfg.replay.ratio_counts == "transitions"
         for ep in episodes:
             self.replay.add_episode(ep)
-            self.limiter.record_insert(ep.length)
+            # By default relabelled copies are stored but not counted: equal updates per env frame.
+            if count_copies or not ep.relabelled:
+                self.limiter.record_insert(ep.length)
             if ep.relabelled:
                 self.relabelled_episodes += 1
             else:
@@ -146,5 +149,3 @@ class LearnerCore:
         else:
             # Without the replay the ratio restarts from an empty buffer.
             self.limiter.inserted = self.limiter.sampled = 0
-
-

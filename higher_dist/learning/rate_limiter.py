@@ -13,7 +13,7 @@ class SamplesPerInsertLimiter:
     min_size: int
     tolerance: float = 1024.0  # samples of slack either way before blocking a side
 
-    inserted: int = 0  # transitions added
+    inserted: int = 0  # inserts counted: env frames of original episodes, or all transitions (replay.ratio_counts)
     sampled: int = 0  # transitions sampled for updates
 
     def record_insert(self, n: int) -> None:

@@ -3,17 +3,20 @@
 The paper's methods differ only here (see the table of methods in README.md):
 - `none`    (DQN, DQN+reward): nothing is relabelled;
 - `expert`  (DQN+HER): the picked object, described from ground truth (the expert reads it by design);
-- `noisy`   (DQN+HER noisy): the same with each attribute resampled with probability p;
+- `noisy`   (DQN+HER noisy): the same with each attribute swapped to another value with probability p;
 - `learned` (DQN+HIGhER): the instruction generator describes the view before the pick; it is trained
   on successful episodes only, and used only once its gate is open.
 
 Every strategy relabels copies of wrong-pick episodes only: successes already carry their reward,
 time-outs picked nothing (nothing to describe), and relabelled copies are never relabelled again.
-Each relabel is scored against the picked object for the dashboard (`relabel_accuracy`); that score
-is computed after the relabels are made and is never fed back into training.
+Each relabel is scored against the picked object for the dashboard; that score is computed after the
+relabels are made and is never fed back into training. `relabel_accuracy` is over the last
+`RECENT_RELABELS` relabels (a window, so it follows the generator as it improves);
+`relabel_accuracy_total` is since the start of the run.
 """
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -27,6 +30,7 @@ from higher_dist.world.objects import ObjectSpace
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
 STRATEGIES = ("none", "expert", "noisy", "learned")
+RECENT_RELABELS = 1000  # window of the reported relabel accuracy
 
 
 def relabel_candidates(episodes: list[Episode]) -> list[Episode]:
@@ -44,6 +48,7 @@ class RelabelStrategy:
         self.considered = 0  # wrong-pick episodes offered for relabelling
         self.relabelled = 0  # copies returned
         self.correct = 0  # copies whose instruction describes the picked object (metrics only)
+        self.recent_correct: deque[bool] = deque(maxlen=RECENT_RELABELS)
         self.contradicting = 0  # relabels dropped because they named the failed goal
 
     def observe(self, episodes: list[Episode]) -> None:
@@ -75,7 +80,9 @@ class RelabelStrategy:
         if not originals:
             return
         picked = np.stack([np.asarray(ep.picked, np.int64) for ep in originals])
-        self.correct += int((picked == np.asarray(new_attrs, np.int64)).all(axis=1).sum())
+        right = (picked == np.asarray(new_attrs, np.int64)).all(axis=1)
+        self.correct += int(right.sum())
+        self.recent_correct.extend(right.tolist())
         self.relabelled += len(originals)
 
     def metrics(self) -> dict[str, Any]:
@@ -84,13 +91,16 @@ class RelabelStrategy:
             "considered": self.considered,
             "relabelled": self.relabelled,
             # None until something was relabelled: "no data", not "always wrong".
-            "relabel_accuracy": self.correct / self.relabelled if self.relabelled else None,
+            "relabel_accuracy": (sum(self.recent_correct) / len(self.recent_correct)
+                                 if self.recent_correct else None),
+            "relabel_accuracy_total": self.correct / self.relabelled if self.relabelled else None,
             "contradicting": self.contradicting,
         }
 
     def state_dict(self) -> dict[str, Any]:
         return {"name": self.name, "rng": self.rng.bit_generator.state, "considered": self.considered,
-                "relabelled": self.relabelled, "correct": self.correct, "contradicting": self.contradicting}
+                "relabelled": self.relabelled, "correct": self.correct, "contradicting": self.contradicting,
+                "recent_correct": list(self.recent_correct)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state["name"] != self.name:
@@ -98,6 +108,8 @@ class RelabelStrategy:
         self.rng.bit_generator.state = state["rng"]
         self.considered, self.relabelled, self.correct = (
             int(state["considered"]), int(state["relabelled"]), int(state["correct"]))
+        self.recent_correct.clear()
+        self.recent_correct.extend(bool(x) for x in state.get("recent_correct", []))
         self.contradicting = int(state.get("contradicting", 0))
 
 
@@ -126,8 +138,8 @@ class ExpertRelabel(RelabelStrategy):
 
 
 class NoisyExpertRelabel(ExpertRelabel):
-    """The expert with each of the 4 attributes resampled, with probability p, among the world's values
-    (so an attribute actually changes with probability p * (1 - 1/n_values))."""
+    """The expert with each of the 4 attributes swapped, with probability p, to another of the world's
+    values (as the paper defines noisy HER: all four stay right with probability (1 - p)^4)."""
 
     name = "noisy"
 
@@ -144,7 +156,8 @@ class LearnedRelabel(RelabelStrategy):
 
     It reads `ep.frames` only: never `ep.picked` or `ep.goal` (except `_score`, after the fact).
     While the gate is closed nothing is relabelled; an output that does not parse to an object of
-    the language is dropped and counted as `unparseable`.
+    the language is dropped and counted as `unparseable`, one that names the episode's own (failed)
+    goal is dropped and counted as `contradicting`.
     """
 
     name = "learned"
@@ -200,8 +213,12 @@ class LearnedRelabel(RelabelStrategy):
         out = super().metrics()
         t = self.trainer
         out.update({
-            "unparseable": self.unparseable, "gated_off": self.gated_off, "gate_open": t.gate_open,
-            "dataset_size": len(t.dataset), "val_accuracy": t.val_accuracy, "train_steps": t.steps,
+            "unparseable": self.unparseable, "gated_off": self.gated_off,
+            "gate_open": t.gate_open,
+            "dataset_size": len(t.dataset),
+            # As of the latest evaluation (None before the first), and the dataset size it was measured at.
+            "val_accuracy": t.val_accuracy if t.evaluations else None, "val_at_pairs": t.val_at_pairs,
+            "train_steps": t.steps,
             "loss": None if np.isnan(t.last_loss) else t.last_loss, "evaluations": t.evaluations,
         })
         return out

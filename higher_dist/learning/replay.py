@@ -125,7 +125,9 @@ class PrioritizedReplay:
         if mission.shape != (self.mission_len,) or mission.min() < 0 or mission.max() > _MAX_TOKEN:
             raise ValueError(f"episode mission must be ({self.mission_len},) word ids in [0, {_MAX_TOKEN}]")
 
-        returns, discounts, offsets = self._n_step_targets(ep.rewards, ep.terminated)
+        # A time-out is a truncation (bootstrapped) unless the run stores it as the paper's code did.
+        terminal = ep.terminated or self.cfg.timeouts_terminal
+        returns, discounts, offsets = self._n_step_targets(ep.rewards, terminal)
         actions = np.zeros(n_slots, dtype=np.uint8)
         actions[:steps] = ep.actions
         span = self._evict_for(n_slots)

@@ -145,7 +145,8 @@ class LearnerRole:
             info.pid = int(f["counters"].get("pid", info.pid))
         elif msg.type == "stats":
             info.stats.update(f["values"])
-            for key in ("success_rate_eval_train", "success_rate_eval_heldout"):
+            for key in ("success_rate_eval_train", "success_rate_eval_heldout",
+                        "success_rate_eval_train_se", "success_rate_eval_heldout_se"):
                 if f["values"].get(key) is not None:
                     self.eval[key] = f["values"][key]
         else:

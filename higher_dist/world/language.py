@@ -163,15 +163,27 @@ def parse(tokens_or_text) -> np.ndarray | None:
 
 
 def noisy_attrs(attrs, p: float, space, rng: np.random.Generator) -> np.ndarray:
-    """The noisy expert's view of `attrs (n, 4)`: each attribute, with probability p, is resampled
-    uniformly among the world's values for it (`space.values(attr)`); it may land on the same value."""
+    """The noisy expert's view of `attrs (n, 4)`, as the paper defines it: each attribute, with
+    probability p, is swapped to another of the world's values for it (`space.values(attr)`), drawn
+    uniformly among the others. An attribute the world gives a single value cannot change."""
     if not 0.0 <= p <= 1.0:
         raise ValueError(f"noisy_attrs: p must be in [0, 1], got {p}")
     attrs = np.asarray(attrs, dtype=np.int8).reshape(-1, 4)
     n = len(attrs)
-    resample = rng.random((n, 4)) < p
-    drawn = np.stack([space.values(a)[rng.integers(len(space.values(a)), size=n)] for a in range(4)], axis=1)
-    return np.where(resample, drawn, attrs).astype(np.int8)
+    swap = rng.random((n, 4)) < p
+    out = attrs.astype(np.int64)
+    for a in range(4):
+        values = np.sort(np.asarray(space.values(a), np.int64))
+        k = len(values)
+        if k < 2:
+            continue
+        position = np.searchsorted(values, out[:, a])
+        if not (values[np.minimum(position, k - 1)] == out[:, a]).all():
+            raise ValueError(f"noisy_attrs: attribute {a} holds values this world does not use")
+        # One of the k - 1 other values, uniformly: a shift of 1..k-1 positions around the value list.
+        other = values[(position + rng.integers(1, k, size=n)) % k]
+        out[:, a] = np.where(swap[:, a], other, out[:, a])
+    return out.astype(np.int8)
 
 
 def with_markers(missions) -> np.ndarray:

@@ -7,6 +7,7 @@ from higher_dist.config import make_config, small_world
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate
 from higher_dist.learning.dqn import DQNLearner
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK
+from higher_dist.world.grid import ACTION_FORWARD, ACTION_LEFT, ACTION_PICK, KIND_EMPTY, KIND_KEY, BatchedFetchAttr
 from higher_dist.world.language import VOCAB, parse
 from higher_dist.world.objects import ObjectSpace
 
@@ -75,6 +76,49 @@ def test_greedy_evaluation_returns_a_rate_over_the_requested_episodes():
     cfg = make_config("her", "small")
     q = TorchQFunction(cfg.network)
     q.load(DQNLearner(cfg.network, cfg.dqn).weights_numpy())
-    rate = evaluate(q, cfg.world, cfg.network.frame_stack, 20, "heldout", seed=0, n_envs=8)
-    assert 0.0 <= rate <= 1.0
-    assert rate == evaluate(q, cfg.world, cfg.network.frame_stack, 20, "heldout", seed=0, n_envs=8)
+    rate, se = evaluate(q, cfg.world, cfg.network.frame_stack, 20, "heldout", seed=0, n_envs=8)
+    assert 0.0 <= rate <= 1.0 and se == pytest.approx((rate * (1 - rate) / 20) ** 0.5)
+    assert (rate, se) == evaluate(q, cfg.world, cfg.network.frame_stack, 20, "heldout", seed=0, n_envs=8)
+
+
+def seek_goal_policy(obs, mission):
+    """A scripted policy whose episode length depends on its outcome: walk ahead until blocked, turn left
+    when blocked, pick when the mission's object is in front. Successes end early; every failure is a
+    time-out (it never picks anything else), which lasts the whole step limit."""
+    view = obs[:, -1]
+    v = view.shape[1]
+    front = view[:, v - 2, v // 2].astype(np.int64)  # [kind, color, shade, size] of the cell ahead
+    goal = np.stack([parse(m) for m in mission]).astype(np.int64)  # (color, type, shade, size)
+    is_goal = ((front[:, 0] == KIND_KEY + goal[:, 1]) & (front[:, 1] == goal[:, 0] + 1)
+               & (front[:, 2] == goal[:, 2] + 1) & (front[:, 3] == goal[:, 3] + 1))
+    blocked = front[:, 0] != KIND_EMPTY
+    action = np.where(is_goal, ACTION_PICK, np.where(blocked, ACTION_LEFT, ACTION_FORWARD))
+    return np.eye(4, dtype=np.float32)[action]
+
+
+def first_episode_outcomes(cfg, n_envs, seed):
+    """The true outcome distribution, read straight from the world: the first episode of each env."""
+    world = BatchedFetchAttr(cfg, n_envs, seed)
+    view, mission = world.reset()
+    first = np.full(n_envs, -1)
+    while (first < 0).any():
+        res = world.step(seek_goal_policy(view[:, None], mission).argmax(1))
+        first = np.where((first < 0) & (res.outcome >= 0), res.outcome, first)
+        view, mission = res.view, res.mission
+    return first
+
+
+def test_evaluation_is_unbiased_when_successes_end_sooner_than_failures():
+    cfg = small_world()
+    truth = first_episode_outcomes(cfg, 4000, seed=11)
+    assert set(np.unique(truth)) == {SUCCESS, TIMEOUT}  # the policy fails only by timing out
+    p = float(np.mean(truth == SUCCESS))
+    assert 0.1 < p < 0.9
+    # Many short evaluations (the periodic evaluation's shape: 64 episodes, fewer envs than episodes)
+    # and one long one over the default batch of environments.
+    short = [evaluate(seek_goal_policy, cfg, 1, 64, "train", seed=s, n_envs=32) for s in range(16)]
+    long = evaluate(seek_goal_policy, cfg, 1, 512, "train", seed=100)
+    for rates, n in (([r for r, _ in short], 64 * 16), ([long[0]], 512)):
+        # Within 3.5 standard errors of the truth (the truth's own error is several times smaller).
+        assert abs(np.mean(rates) - p) < 3.5 * (p * (1 - p) / n) ** 0.5, (np.mean(rates), p, n)
+    assert all(se == pytest.approx((r * (1 - r) / 64) ** 0.5) for r, se in short)

@@ -36,6 +36,7 @@ def recorded_stream(n: int = 10) -> list[dict]:
             "time": 1000.0 + 2 * i, "elapsed_s": 2.0 * i, "preset": "higher", "world": "fetch_attr",
             "frames": 123_456 * i, "frames_budget": 5_000_000, "updates": 1000 * i, "episodes": 50 * i,
             "success_rate_train": i / (n - 1), "success_rate_eval_train": 0.5, "success_rate_eval_heldout": 0.25,
+            "success_rate_eval_train_se": 0.031,
             "relabelled_episodes": 10 * i, "generator_val_accuracy": 0.1 * i if i > 2 else None,
             "relabel_dataset_size": 1500, "relabel_gate_open": True, "relabels_per_s": 4.5,
             "relabel_accuracy": 0.8125, "rejected_messages": 3, "frames_per_s": 1500.0, "updates_per_s": 2.5,
@@ -69,15 +70,19 @@ def test_render_recorded_stream():
         state.update(record, now=100.0 + k)
     text = export(render(state, now=110.0))
     assert "1,111,104 / 5,000,000" in text  # frames of the last record, against the budget
-    assert "100.0%" in text  # success on training goals
-    assert "50.0%" in text and "25.0%" in text  # eval on train and held-out goals
+    assert "100.0%" in text  # success on training goals, while exploring
+    assert "50.0% ± 3.1" in text and "25.0%" in text  # greedy eval on train (with its error) and held-out goals
+    # Greedy evaluation is the headline; the training success is labelled as exploring, below it.
+    assert text.index("greedy, train") < text.index("exploring, train")
+    assert "success (train)" not in text
     assert "GONE (dead)" in text and "1 dead" in text and "3 alive" in text
     assert "nodeB" in text and "4321" in text
     assert "open" in text and "81.2%" in text and "1,500" in text  # relabeler gate, accuracy, dataset
     for figure in ("200", "20.0%", "300", "30.0%", "400", "40.0%", "100", "10.0%"):
         assert figure in text  # replay composition: counts and shares
     assert "1,500/s" in text and "2.50/s" in text and "0.0123" in text and "43m13s" in text and "22%" in text
-    assert "▂▃▃▄▅▆▆▇█" in text and "▃▄▅▅▆▇▇" in text  # success and generator trends, on a 0-1 scale
+    assert "▂▃▃▄▅▆▆▇█" in text and "▃▄▅▅▆▇▇" in text  # exploring success and generator trends, 0-1 scale
+    assert "greedy success" in text and "exploring success" in text
     assert "no telemetry" not in text and "waiting" not in text
 
 

@@ -1,3 +1,5 @@
+from dataclasses import replace as _replace
+
 import numpy as np
 import pytest
 
@@ -77,3 +79,12 @@ def test_epsilon_greedy_per_row_rates():
     assert np.mean(high != 2) == pytest.approx(0.60, abs=0.02)
     # A scalar epsilon broadcasts.
     assert epsilon_greedy(q[:10], 0.0, rng).tolist() == [2] * 10
+
+
+def test_apex_warmup_starts_every_slot_at_one_and_reaches_the_ladder():
+    cfg = _replace(ExplorationConfig(), kind="apex", warmup_frames=1000)
+    plain = actor_epsilons(_replace(cfg, warmup_frames=0), 0, 2, 8, 0)
+    np.testing.assert_allclose(actor_epsilons(cfg, 0, 2, 8, 0), 1.0)
+    np.testing.assert_allclose(actor_epsilons(cfg, 0, 2, 8, 500), (1.0 + plain) / 2)
+    np.testing.assert_allclose(actor_epsilons(cfg, 0, 2, 8, 1000), plain)
+    np.testing.assert_allclose(actor_epsilons(cfg, 0, 2, 8, 10**7), plain)

@@ -278,3 +278,16 @@ def test_state_dict_round_trip_through_npz():
     assert_same_batch(restored.sample(32, 0.6), replay.sample(32, 0.6))
     with pytest.raises(ValueError):
         make_replay(capacity=41).load_state_dict(state)
+
+
+def test_timeouts_can_be_stored_terminal_as_the_papers_code_did():
+    ep = make_episode(4, 6, TIMEOUT)
+    for terminal in (False, True):
+        replay = make_replay(frame_stack=1, timeouts_terminal=terminal)
+        replay.add_episode(ep)
+        batch = sample_all(replay)
+        ref = reference_targets(ep.rewards, terminal)
+        for i, slot in enumerate(batch.indices):
+            assert batch.discount[i] == pytest.approx(ref[slot][1], rel=1e-6)
+        last = batch.indices == 5
+        np.testing.assert_allclose(batch.discount[last], 0.0 if terminal else GAMMA, rtol=1e-6)

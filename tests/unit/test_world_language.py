@@ -110,7 +110,7 @@ def test_with_markers_gives_decoder_targets():
     np.testing.assert_array_equal(target[1:7], row[:6])
 
 
-def test_noisy_expert_resamples_each_attribute_at_the_expected_rate():
+def test_noisy_expert_swaps_each_attribute_to_another_value_with_probability_p():
     space = ObjectSpace(WorldConfig())
     rng = np.random.default_rng(1)
     n, p = 40_000, 0.3
@@ -118,12 +118,19 @@ def test_noisy_expert_resamples_each_attribute_at_the_expected_rate():
     noisy = noisy_attrs(attrs, p, space, rng)
     assert noisy.shape == (n, 4) and noisy.dtype == np.int8
     for a in range(4):
-        n_values = len(space.values(a))
-        expected = p * (1 - 1 / n_values)
         changed = (noisy[:, a] != attrs[:, a]).mean()
-        assert abs(changed - expected) < 0.012, (a, changed, expected)  # ~5 standard deviations
+        assert abs(changed - p) < 0.012, (a, changed, p)  # ~5 standard deviations
         assert set(noisy[:, a].tolist()) <= set(space.values(a).tolist())
+    # All four attributes right: (1 - p)^4, the paper's rate (resampling would give more).
+    all_right = (noisy == attrs).all(axis=1).mean()
+    assert abs(all_right - (1 - p) ** 4) < 0.012, all_right
     np.testing.assert_array_equal(noisy_attrs(attrs, 0.0, space, rng), attrs)
+    # At p = 1 every attribute changes, to each other value about equally often.
+    swapped = noisy_attrs(attrs, 1.0, space, rng)
+    assert (swapped != attrs).all()
+    reds = swapped[attrs[:, 0] == attrs[0, 0], 0]
+    counts = np.unique(reds, return_counts=True)[1]
+    assert len(counts) == len(space.values(0)) - 1 and counts.min() > 0.8 * counts.mean()
 
 
 def test_noisy_expert_stays_within_the_world_values():
@@ -132,7 +139,7 @@ def test_noisy_expert_stays_within_the_world_values():
     attrs = np.repeat(space.train_objects[:1], 2000, axis=0)
     noisy = noisy_attrs(attrs, 1.0, space, rng)
     assert set(noisy[:, 2].tolist()) == {2} and set(noisy[:, 3].tolist()) == {2}
-    assert set(noisy[:, 0].tolist()) == {0, 1}  # resampled uniformly: both colors occur
+    assert (noisy[:, 0] != attrs[:, 0]).all()  # two colors: a swap always lands on the other one
     with pytest.raises(ValueError, match="p must be"):
         noisy_attrs(attrs, 1.5, space, rng)
 

@@ -1,0 +1,73 @@
+"""Profiles: the paper's settings with one switch, recorded in the run's config."""
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from higher_dist.cli import add_config_flags, config_from_args
+from higher_dist.bench.generator_bench import make_pairs
+from higher_dist.config import ConfigError, WorldConfig, from_dict, make_config
+from higher_dist.learning.generator import GeneratorTrainer, InstructionGenerator
+from higher_dist.rundir import RunDir
+
+
+@pytest.mark.parametrize("preset, decay", [("her", 100_000), ("higher", 400_000), ("dqn", 100_000)])
+def test_paper_profile_applies_the_papers_settings_on_top_of_a_preset(preset, decay):
+    ours, paper = make_config(preset, "paper"), make_config(preset, "paper", "paper")
+    assert ours.profile == "default" and paper.profile == "paper"
+    assert paper.preset == preset and paper.relabel == ours.relabel  # the method stays the preset's
+    e = paper.exploration
+    assert (e.kind, e.eps_start, e.eps_end, e.decay_frames) == ("linear", 1.0, 0.05, decay)
+    g = paper.generator
+    assert not g.front_cell_shortcut and g.n_min == 1000 and g.min_accuracy == 0.0
+    assert ours.generator.front_cell_shortcut
+    # Options of the paper's that the profile leaves off, and overrides still win over the profile.
+    assert not paper.replay.timeouts_terminal
+    tweaked = make_config(preset, "paper", "paper", **{"generator.n_min": 2000, "replay.timeouts_terminal": True})
+    assert tweaked.generator.n_min == 2000 and tweaked.replay.timeouts_terminal and tweaked.profile == "paper"
+
+
+def test_the_profile_is_recorded_in_config_json_and_travels_with_the_config(tmp_path):
+    import argparse
+    p = argparse.ArgumentParser()
+    add_config_flags(p)
+    cfg = config_from_args(p.parse_args(["--preset", "higher", "--profile", "paper", "--frames", "1000"]))
+    RunDir(str(tmp_path / "run")).write_config(cfg)
+    written = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert written["profile"] == "paper" and written["generator"]["front_cell_shortcut"] is False
+    assert from_dict(written) == cfg  # an actor rebuilding it from the welcome gets the same settings
+    with pytest.raises(SystemExit):
+        p.parse_args(["--profile", "fastest"])
+    with pytest.raises(ConfigError, match="profile"):
+        make_config("her", "paper", "fastest")
+    with pytest.raises(ConfigError, match="profile"):
+        from_dict({**written, "profile": "fastest"})
+
+
+def test_generator_without_the_front_cell_shortcut_reads_conv_features_only():
+    torch.manual_seed(0)
+    cfg = make_config("higher", "paper", "paper").generator
+    with_cut = InstructionGenerator(make_config("higher", "paper").generator)
+    without = InstructionGenerator(cfg)
+    assert without.context.in_features == without.encoder.out_dim
+    assert with_cut.context.in_features == with_cut.encoder.out_dim + with_cut.cfg.embed_dim
+    # It still learns: the loss falls on a few hundred pairs (a check of the path, not of accuracy;
+    # a narrow generator keeps it cheap).
+    narrow = replace(cfg, embed_dim=4, conv_channels=(8, 8), word_embed_dim=8, hidden=32, lr=3e-3, batch_size=32)
+    trainer = GeneratorTrainer(narrow, seed=0)
+    views, missions, _ = make_pairs(WorldConfig(), 256, "train", np.random.default_rng(0))
+    trainer.dataset.add_many(views, missions)
+    first = trainer.train_steps(3)
+    assert trainer.train_steps(40) < 0.8 * first
+
+
+def test_paper_world_tuning_applies_to_the_paper_world_only_and_the_paper_profile_overrides_it():
+    higher = make_config("higher", "paper")
+    assert higher.generator.n_min < 1000 and higher.exploration.warmup_frames > 0
+    assert (higher.dqn.batch_size, make_config("her", "small").dqn.batch_size) == (256, 64)
+    small = make_config("higher", "small")
+    assert small.exploration.warmup_frames == 0  # a warm-up as long as a small-world run would be all of it
+    paper = make_config("higher", "paper", "paper")
+    assert paper.generator.n_min == 1000 and paper.exploration.kind == "linear"
