@@ -227,11 +227,7 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
         # loss would cost more CPU than it saves.
         cfg = replace(
             cfg,
-<<<<<<< HEAD
-            dqn=replace(cfg.dqn, compile=False),
-=======
-            dqn=replace(cfg.dqn, batch_size=64, lr=5e-4),
->>>>>>> 6e6a75bab178a31f95603106ac7d20d4e7c34973
+            dqn=replace(cfg.dqn, batch_size=64, lr=5e-4, compile=False),
             generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=50.0, eval_every_updates=50),
             replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
             exploration=replace(cfg.exploration, decay_frames=50_000),

@@ -12,12 +12,8 @@ import sys
 # name -> module under higher_dist.bench with a main(argv) -> int
 COMMANDS: dict[str, str] = {
     "world": "world_bench", "learner": "learner_bench", "wire": "wire_bench",
-<<<<<<< HEAD
-    "generator": "generator_bench", "cluster": "cluster_bench", "all": "run_all",
-    "time-to-success": "time_to_success_bench",
-=======
     "generator": "generator_bench", "cluster": "cluster_bench", "soak": "soak_bench", "all": "run_all",
->>>>>>> 6e6a75bab178a31f95603106ac7d20d4e7c34973
+    "time-to-success": "time_to_success_bench",
 }
 
 
