@@ -22,6 +22,8 @@ from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
 
+from higher_dist import metrics as m
+
 MISSING = "-"
 SPARK_BLOCKS = "▁▂▃▄▅▆▇█"
 HISTORY_LEN = 120
@@ -183,9 +185,26 @@ def cluster_panel(record: dict[str, Any]) -> Panel:
     alive = sum(r.get("state") == "alive" for r in roles)
     dead = sum(r.get("state") == "dead" for r in roles)
     title = f"Cluster  [green]{alive} alive[/]" + (f"  [bold red]{dead} dead[/]" if dead else "")
-    subtitle = (f"rejected messages {fmt_int(record.get('rejected_messages'))}"
-                f"  ·  weights v{fmt_int(record.get('weights_version'))}")
-    return Panel(table, title=title, title_align="left", subtitle=subtitle, subtitle_align="right")
+    subtitle = (f"rejected messages {fmt_int(record.get(m.REJECTED))}"
+                f"  ·  weights v{fmt_int(record.get(m.WEIGHTS_VERSION))}")
+    reasons = reject_summary(record)
+    body: RenderableType = table if not reasons else Group(table, Text(reasons, style="yellow"))
+    return Panel(body, title=title, title_align="left", subtitle=subtitle, subtitle_align="right")
+
+
+def reject_summary(record: dict[str, Any], top: int = 6) -> str:
+    """'dropped: mission_grammar 12, outcome 3, ...': what every role dropped, by reason, largest first."""
+    by_reason = record.get(m.REJECTS_BY_REASON)
+    if not isinstance(by_reason, dict):
+        return ""
+    counts = sorted(((n, k) for k, n in by_reason.items() if _is_number(n) and n > 0), reverse=True)
+    if not counts:
+        return ""
+    shown = ", ".join(f"{k} {fmt_int(n)}" for n, k in counts[:top])
+    more = f", +{len(counts) - top} more reasons" if len(counts) > top else ""
+    errors = record.get(m.HANDLER_ERRORS)
+    tail = f"; handler errors {fmt_int(errors)}" if _is_number(errors) and errors else ""
+    return f"dropped: {shown}{more}{tail}"
 
 
 def frames_progress(record: dict[str, Any]) -> tuple[RenderableType, str]:

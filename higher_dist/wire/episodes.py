@@ -41,7 +41,6 @@ EPISODE_REJECTS = (
     "relabel_origin",  # a relabelled episode from a sender that may not relabel
     "relabel_inconsistent",  # a relabelled copy that is not a wrong pick rewarded 1, or names its own goal
     "actor_id",  # an actor id outside the run's actors
-    "weights_version",  # a policy version the learner has not published yet
 )
 
 
@@ -72,7 +71,7 @@ def pack_episodes(episodes: Sequence[Episode]) -> tuple[dict[str, Any], dict[str
 
 
 def unpack_episodes(msg: Message, spec: WorldSpec, *, reject=None, allow_relabelled: bool = True,
-                    n_actors: int | None = None, max_weights_version: int | None = None) -> list[Episode]:
+                    n_actors: int | None = None) -> list[Episode]:
     """Episodes from a decoded `episodes` message, checked against the run's world.
 
     A structural fault of the batch raises WireError (drop the message). A fault of one episode calls
@@ -94,7 +93,7 @@ def unpack_episodes(msg: Message, spec: WorldSpec, *, reject=None, allow_relabel
     if steps != actions.shape[0] or steps + n != frames.shape[0]:
         raise WireError("shape", "lengths sum to %d steps; got %d actions and %d frames (expected %d)"
                         % (steps, actions.shape[0], frames.shape[0], steps + n))
-    bad = _episode_faults(a, spec, allow_relabelled, n_actors, max_weights_version)
+    bad = _episode_faults(a, spec, allow_relabelled, n_actors)
     episodes = []
     step_start = frame_start = 0
     for i in range(n):
@@ -117,8 +116,7 @@ def unpack_episodes(msg: Message, spec: WorldSpec, *, reject=None, allow_relabel
     return episodes
 
 
-def _episode_faults(a: dict, spec: WorldSpec, allow_relabelled: bool, n_actors: int | None,
-                    max_weights_version: int | None) -> list[str]:
+def _episode_faults(a: dict, spec: WorldSpec, allow_relabelled: bool, n_actors: int | None) -> list[str]:
     """Per episode, the first failed check's reason ("" when it passes). Vectorised over the batch,
     except the grammar, which parses each mission once."""
     lengths = a["lengths"].astype(np.int64)
@@ -184,8 +182,6 @@ def _episode_faults(a: dict, spec: WorldSpec, allow_relabelled: bool, n_actors: 
     flag(relabelled & (outcome != WRONG_PICK), "relabel_inconsistent")
     if n_actors is not None:
         flag(a["actor_id"] >= n_actors, "actor_id")
-    if max_weights_version is not None:
-        flag(a["weights_version"] > max_weights_version, "weights_version")
     # The grammar last: the only per-episode Python loop, skipped for episodes already dropped.
     for i in range(n):
         if reasons[i]:

@@ -64,7 +64,7 @@ def test_ten_thousand_wrong_messages_kill_nothing_and_lose_nothing(tmp_path):
         watch.wait_for("the relabeler registered",
                        lambda r: any(row["role"] == "relabeler" and row["state"] == "alive" for row in r["roles"]),
                        timeout=120)
-        to_learner, to_relabeler = _push(ctx, endpoints.experience), _push(ctx, endpoints.relabeler)
+        to_learner, to_relabeler = _push(ctx, endpoints.experience), _push(ctx, endpoints.episodes)
         rng = np.random.default_rng(12)
         pools = Pools.of(real_episodes(cfg.world, 600, seed=3))
         kinds = sorted(k for k in MUTATIONS if k != "huge_batch")

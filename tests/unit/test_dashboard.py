@@ -196,3 +196,16 @@ def test_run_dashboard_stops_after_deadline_without_a_publisher():
     assert run_dashboard("tcp://127.0.0.1:1", refresh_per_s=20.0, stop_after_s=0.3, console=Console(file=out)) == 0
     assert time.monotonic() - started < 3
     assert "waiting for telemetry" in out.getvalue()
+
+
+def test_the_cluster_panel_shows_rejects_by_reason():
+    from higher_dist.roles.dashboard_view import reject_summary
+
+    record = {"rejects_by_reason": {"mission_grammar": 12, "outcome": 3, "cell": 0}, "handler_errors": 1}
+    assert reject_summary(record) == "dropped: mission_grammar 12, outcome 3; handler errors 1"
+    assert reject_summary({"rejects_by_reason": {}}) == "" and reject_summary({}) == ""
+    state = DashboardState()
+    state.update({**record, "frames": 10, "rejected_messages": 15, "roles": []})
+    out = io.StringIO()
+    Console(file=out, width=140).print(render(state))
+    assert "dropped: mission_grammar 12" in out.getvalue()

@@ -42,7 +42,7 @@ def test_each_mutation_is_dropped_under_its_reason(world, kind, to_relabeler):
         h = hostile_message(kind, POOLS[world], rng, spec, "actor0" if to_relabeler else "relabeler", to_relabeler)
         try:
             back, rejects = _unpack(h.frames, spec, allow_relabelled=not to_relabeler,
-                                    n_actors=CFG[world].actors, max_weights_version=0)
+                                    n_actors=CFG[world].actors)
         except WireError as e:
             assert (h.rejects, h.reason) == (1, e.reason), (kind, e)
             continue
@@ -65,7 +65,7 @@ def test_whatever_passes_can_be_stored(array_name, position, value):
         return  # the schema refused it: not this test's concern
     try:
         back, _ = _unpack([bytes(f) for f in encode("episodes", fields, arrays)], SPECS["small"],
-                          n_actors=2, max_weights_version=0)
+                          n_actors=2)
     except WireError:
         return
     core = LearnerCore(CFG["small"])

@@ -177,3 +177,23 @@ def test_generate_handles_empty_input_and_expert_tokens_parse():
     attrs = np.array([[0, 0, 1, 0]])
     acc = semantic_accuracy(expert_tokens(attrs, np.random.default_rng(0)), attrs)
     assert acc["exact"] == 1.0
+
+
+def test_greedy_decoding_sees_only_a_few_batch_shapes():
+    """The relabeler decodes batches of every size; padding them to powers of two keeps the CPU kernels'
+    per-shape caches (and with them the relabeler's memory) bounded."""
+    from higher_dist.learning.generator import EVAL_CHUNK, inference_batch
+
+    trainer = GeneratorTrainer(SMALL, seed=0)
+    seen = []
+    greedy = trainer.model.greedy
+    trainer.model.greedy = lambda views: (seen.append(views.shape[0]), greedy(views))[1]
+    views = np.zeros((EVAL_CHUNK + 37, 7, 7, 4), np.uint8)
+    outputs = {}
+    for n in (1, 2, 3, 5, 9, 17, 33, 100, EVAL_CHUNK + 37):
+        outputs[n] = trainer.generate(views[:n])
+        assert outputs[n].shape[0] == n
+    assert set(seen) <= {inference_batch(n) for n in range(1, EVAL_CHUNK + 1)}
+    assert len(set(seen)) <= 8 and all(s >= 8 for s in seen)  # 8, 16, ..., 1024 at most
+    # Padding does not change what a view decodes to.
+    assert np.array_equal(outputs[3], outputs[100][:3])
