@@ -81,14 +81,15 @@ def run(preset: str, world: str, target: float, frames_cap: int, max_minutes: fl
     last = records[-1] if records else {}
     config = json.loads((run_dir / "config.json").read_text()) if (run_dir / "config.json").exists() else {}
     found = crossings(records, levels, launched)
-    evals = [(int(r["frames"]), r[SUCCESS_KEY]) for r in records if r.get(SUCCESS_KEY) is not None]
+    # Every record repeats the latest evaluation: one entry per evaluation (its frames).
+    evals = {int(r.get("eval_frames", r["frames"])): r[SUCCESS_KEY] for r in records if r.get(SUCCESS_KEY) is not None}
     return {
         "preset": preset, "world": world, "seed": seed, "target": target, "stop": reason,
         "frames": int(last.get("frames", 0)), "seconds": round((last.get("time", launched)) - launched, 1),
         "batch_size": config.get("dqn", {}).get("batch_size"), "actors": config.get("actors"),
         "envs_per_actor": config.get("envs_per_actor"), "compile": config.get("dqn", {}).get("compile"),
         "levels": {f"{level:g}": found.get(level) for level in levels},
-        "best_eval": max((v for _, v in evals), default=None), "evaluations": len(evals),
+        "best_eval": max(evals.values(), default=None), "evaluations": len(evals),
         "load_average": os.getloadavg(), "run_dir": str(run_dir),
     }
 

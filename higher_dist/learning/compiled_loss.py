@@ -1,8 +1,8 @@
 """The DQN loss compiled with torch.compile (inductor, C++ kernels for the CPU), built off the hot path.
 
 Compiling costs 10-100 s on a loaded 2-core machine the first time (the FX graph cache under
-/tmp/torchinductor_$USER makes later starts cheaper), while the compiled forward + backward measured
-~1.5-2.4x faster than eager on one thread (docs/benchmarks.md). So the learner never waits for it:
+/tmp/torchinductor_$USER makes later starts cheaper), while the compiled step measured ~1.4x the eager
+samples per CPU-second at batch 64-256 (docs/benchmarks.md). So the learner never waits for it:
 `start` traces and compiles on a background thread, on clones of the parameters and an example batch,
 and the learner keeps stepping eagerly until `ready`. Any failure (no C++ compiler, an unsupported
 op) leaves `failed` set with the reason, and the learner stays eager for good.
@@ -19,6 +19,8 @@ from typing import Callable
 
 import torch
 from torch import nn
+
+from higher_dist.learning.networks import traced_path
 
 log = logging.getLogger("higher.compile")
 
@@ -41,7 +43,9 @@ class CompiledLoss:
 
     def __init__(self, terms: Callable, online: nn.Module, target: nn.Module, **options):
         self._module = _Loss(terms, online, target, options)
-        self._live = {**dict(self._module.named_parameters()), **dict(self._module.named_buffers())}
+        # Parameters only: buffers (constants of the encoding) stay the modules' own, and passing them
+        # too would alias them, which Dynamo guards against (a blocking recompile on the first call).
+        self._live = dict(self._module.named_parameters())
         self._fn: Callable | None = None
         self._thread: threading.Thread | None = None
         self.failed: str | None = None
@@ -60,7 +64,10 @@ class CompiledLoss:
         unless `background` is False (benchmarks and tests, which want the compiled path at once)."""
         if self.started:
             return
-        clones = {name: t.detach().clone().requires_grad_(t.requires_grad) for name, t in self._live.items()}
+        # Parameters like the live ones: Dynamo guards on the type, and a plain tensor here would
+        # recompile, blocking, on the first real call.
+        clones = {name: nn.Parameter(t.detach().clone(), requires_grad=t.requires_grad)
+                  for name, t in self._live.items()}
         example = {name: t.clone() for name, t in example.items()}
         self._shapes = {name: (t.shape, t.dtype) for name, t in example.items()}
         if not background:
@@ -100,7 +107,8 @@ class CompiledLoss:
             fn = torch.compile(functional, dynamic=False)
             # One forward and backward on the clones compiles both graphs; the clones' grads are
             # thrown away with them.
-            loss = fn(params, example)[0]
+            with traced_path():
+                loss = fn(params, example)[0]
             loss.backward()
             self._fn = fn
             log.info("compiled DQN loss ready")
@@ -111,4 +119,5 @@ class CompiledLoss:
     def __call__(self, batch: dict[str, torch.Tensor]):
         if self._fn is None:
             raise RuntimeError("CompiledLoss called before it is ready")
-        return self._fn(self._live, batch)
+        with traced_path():  # a recompile (new guards) traces the same graph-friendly forms
+            return self._fn(self._live, batch)

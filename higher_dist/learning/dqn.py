@@ -202,21 +202,17 @@ class DQNLearner:
 
     def _loss_terms(self, tensors: dict[str, torch.Tensor]):
         """dqn_terms, compiled once the background compile is ready (started by the first batch, whose
-        shapes it specialises to), eager until then or when it failed."""
+        shapes it specialises to), eager until then, for other shapes, or when it failed."""
         c = self.compiled
-        self._ran_compiled = False
-        if c is None or c.failed:
-            return dqn_terms(self.online, self.target, huber_delta=self.cfg.huber_delta, double=self.cfg.double,
-                             joint_online=self.cfg.joint_online, **tensors)
-        if not c.started:
+        if c is not None and not c.started:
             c.start(tensors)
-        if not c.accepts(tensors):
+        self._ran_compiled = c is not None and c.accepts(tensors)
+        if not self._ran_compiled:
             return dqn_terms(self.online, self.target, huber_delta=self.cfg.huber_delta, double=self.cfg.double,
                              joint_online=self.cfg.joint_online, **tensors)
         # The compiled graph has no room for a data-dependent raise: check the views here.
         self.online.view.check_views(tensors["obs"])
         self.online.view.check_views(tensors["next_obs"])
-        self._ran_compiled = True
         return c(tensors)
 
     def _update_target(self) -> None:

@@ -11,6 +11,9 @@ network four times its size, and FiLM beat concatenation.
 """
 from __future__ import annotations
 
+import threading
+from contextlib import contextmanager
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -19,6 +22,30 @@ from torch import nn
 from higher_dist.config import NetworkConfig
 from higher_dist.world.language import PAD as PAD_ID
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
+
+
+_trace_state = threading.local()
+
+
+@torch.compiler.assume_constant_result
+def on_traced_path() -> bool:
+    """True while `traced_path` is on in this thread and torch.compile is tracing: the learner's
+    compiled loss then takes the graph-friendly forms below (no data-dependent branches or raises;
+    same maths). torch.compiler.is_compiling() alone is not enough: it is one flag for the whole
+    process while any thread compiles, and the learner keeps stepping eagerly (and the evaluator
+    thread acting) while its loss compiles in the background."""
+    return bool(getattr(_trace_state, "on", False)) and torch.compiler.is_compiling()
+
+
+@contextmanager
+def traced_path():
+    """Mark this thread's calls as the compiled loss's (set by learning.compiled_loss)."""
+    before = getattr(_trace_state, "on", False)
+    _trace_state.on = True
+    try:
+        yield
+    finally:
+        _trace_state.on = before
 
 
 class _SmallTableLookup(torch.autograd.Function):
@@ -44,7 +71,7 @@ class _SmallTableLookup(torch.autograd.Function):
 
 def lookup(index: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
     """Rows of `table` named by `index` (any shape) -> index.shape + (E,)."""
-    if torch.is_grad_enabled() and table.requires_grad and not torch.compiler.is_compiling():
+    if torch.is_grad_enabled() and table.requires_grad and not on_traced_path():
         return _SmallTableLookup.apply(index, table)
     return F.embedding(index, table)
 
@@ -114,7 +141,7 @@ class ViewEncoder(nn.Module):
     def embed_views(self, views: torch.Tensor) -> torch.Tensor:
         """(B, k, V, V, 4) integer views -> (B, k*E, V, V) float maps (channels-last in memory)."""
         b, k, v, _, c = views.shape
-        if not torch.compiler.is_compiling():
+        if not on_traced_path():
             # A compiled caller checks before entering the graph (a data-dependent raise would break it).
             self.check_views(views)
         # Frames next to the embedding in memory: the lookup then writes (B, V, V, k*E) directly,
@@ -157,7 +184,7 @@ class InstructionEncoder(nn.Module):
 
     def forward(self, mission: torch.Tensor) -> torch.Tensor:
         lengths = (mission != PAD_ID).sum(dim=1).clamp(min=1)
-        if torch.compiler.is_compiling():
+        if on_traced_path():
             # Traced: no data-dependent cut, and the recurrence written out so the compiler fuses it.
             return self.unrolled(lookup(mission, self.embed.weight), lengths)
         longest = int(lengths.max())

@@ -197,3 +197,15 @@ def test_load_weights_numpy_rejects_mismatch_without_partial_update() -> None:
     other = QNetwork(NetworkConfig(**{**SMALL.__dict__, "hidden": 32}))
     with pytest.raises(ValueError, match="shape"):
         load_weights_numpy(other, good)
+
+
+def test_views_are_checked_while_another_thread_compiles() -> None:
+    """torch.compile raises one process-wide "compiling" flag while the learner's loss compiles in the
+    background; eager forwards meanwhile (the learner's, the evaluator's) must still refuse bad views."""
+    enc = ViewEncoder(embed_dim=4, conv_channels=(8,), in_frames=1)
+    views = torch.zeros(1, 1, 7, 7, 4, dtype=torch.uint8)
+    views[0, 0, 3, 3, 0] = 9
+    with torch.compiler._compile_session_context():
+        assert torch.compiler.is_compiling()
+        with pytest.raises(ValueError, match="out of range"):
+            enc(views)
