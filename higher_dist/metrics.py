@@ -35,8 +35,15 @@ REPLAY_SIZE = "replay_size"
 REPLAY_RATIO = "replay_ratio"
 RELABELLED_EPISODES = "relabelled_episodes"
 REPLAY_ORIGIN_PREFIX = "replay_"  # + success | wrong_pick | timeout | relabelled
+# The DQN step's own metrics (learning/dqn.py), carried into the record as they come.
 LOSS = "loss"
 Q_MEAN = "q_mean"
+TD_ABS_MEAN = "td_abs_mean"
+TARGET_MEAN = "target_mean"
+GRAD_NORM = "grad_norm"
+SKIPPED_UPDATES = "skipped_updates"  # steps refused for a non-finite gradient
+LOSS_COMPILED = "loss_compiled"  # 1 once the update runs the torch.compile'd loss
+COMPILE_PENDING = "compile_pending"  # 1 while that compile runs in the background (updates run eager)
 
 # -- relabelling ----------------------------------------------------------------------------------
 RELABEL_STRATEGY = "relabel_strategy"
