@@ -5,7 +5,17 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 TORCH_VERSION ?= 2.13.0
 
-.PHONY: install test test-fast cluster bench lint clean
+.PHONY: install test test-fast test-deploy netns-tools slurm-tools cluster bench bench-time reproduce lint clean
+
+# `make reproduce -- --dry-run --seeds 2 main`: the words after `reproduce` are higher-reproduce's
+# arguments (write `--seeds 2`, not `--seeds=2`: make takes NAME=VALUE words as its own variables).
+# They become targets of make too, so they get an empty rule here. ARGS="..." works as well.
+ifeq (reproduce,$(firstword $(MAKECMDGOALS)))
+REPRODUCE_ARGS := $(wordlist 2,$(words $(MAKECMDGOALS)),$(MAKECMDGOALS))
+ifneq ($(REPRODUCE_ARGS),)
+$(eval $(REPRODUCE_ARGS):;@:)
+endif
+endif
 
 install: $(STAMP)
 
@@ -18,8 +28,25 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[dev,minigrid,plot,tensorboard]'
 	touch $(STAMP)
 
-test: install
+test: install netns-tools
 	$(BIN)/python -m pytest tests
+
+# The multi-host test builds hosts as network namespaces with iproute2's `ip netns` (as root). Install
+# it where it is missing and apt-get is there; otherwise that test skips and says why.
+netns-tools:
+	@command -v ip >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \
+	  apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends iproute2; } || \
+	  echo "iproute2 is not installed: the multi-host test will skip"
+
+# deploy/slurm/higher.sbatch on a real Slurm (slurmctld + two slurmd in network namespaces, started by
+# the test). Needs root; installs Debian's slurm-wlm and munge where they are missing.
+test-deploy: install netns-tools slurm-tools
+	$(BIN)/python -m pytest tests/deploy -v
+
+slurm-tools:
+	@command -v slurmctld >/dev/null 2>&1 && command -v munged >/dev/null 2>&1 || { \
+	  apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends \
+	    slurm-wlm munge; }
 
 test-fast: install
 	$(BIN)/python -m pytest tests/unit
@@ -27,9 +54,17 @@ test-fast: install
 cluster: install
 	$(BIN)/higher-cluster --preset higher --world paper $(ARGS)
 
+reproduce: install
+	$(BIN)/higher-reproduce $(REPRODUCE_ARGS) $(ARGS)
+
 bench: install
 	mkdir -p results
 	$(BIN)/higher-bench all --results results
+
+# Tens of minutes: the real cluster until greedy success reaches the target (not part of `make bench`).
+bench-time: install
+	mkdir -p results
+	$(BIN)/higher-bench time-to-success --preset her --target 0.4 $(ARGS) | tee results/time-to-success-her.txt
 
 lint: install
 	$(BIN)/python -m compileall -q higher_dist tests

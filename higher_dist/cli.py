@@ -71,7 +71,26 @@ def _network_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address the learner advertises (loopback by default)")
     p.add_argument("--bind-host", default=None, help="interface to bind, e.g. 0.0.0.0 across hosts")
     p.add_argument("--port-base", type=int, default=None, help="first of the five ports (default 5555)")
-    p.add_argument("--keys", default=None, help="CURVE keys folder (from higher-keys) to encrypt every socket")
+    _security_flags(p, binds=True)
+
+
+def _security_flags(p: argparse.ArgumentParser, binds: bool) -> None:
+    p.add_argument("--keys", default=None, metavar="DIR",
+                   help="CURVE keys folder (from higher-keys): encrypt every socket, admit only listed clients")
+    if binds:
+        p.add_argument("--insecure", action="store_true",
+                       help="allow binding beyond loopback without --keys (anyone reaching the ports joins the run)")
+
+
+def _security(args: argparse.Namespace):
+    """The Security of a role's flags; a --keys folder that is not there is refused by name."""
+    from pathlib import Path
+
+    from higher_dist.wire.security import Security
+
+    if args.keys is not None and not Path(args.keys).is_dir():
+        raise ConfigError(f"--keys {args.keys}: no such folder (make one with higher-keys)")
+    return Security(args.keys, insecure=getattr(args, "insecure", False))
 
 
 def _run(prog: str, build: Callable[[], int]) -> int:
@@ -108,7 +127,7 @@ def cluster_main(argv: list[str] | None = None) -> int:
                               "or choose another --run-dir")
         return run_local_cluster(cfg, run_dir, resume=args.resume, dashboard=not args.no_dashboard,
                                  host=args.host, port_base=args.port_base, max_restarts=args.max_restarts,
-                                 keys=args.keys)
+                                 security=_security(args), bind_host=args.bind_host)
 
     return _run("higher-cluster", go)
 
@@ -137,14 +156,14 @@ def learner_main(argv: list[str] | None = None) -> int:
             cfg = config_from_args(args)
         endpoints = Endpoints.from_base(args.host, args.port_base or DEFAULT_BASE_PORT)
         return run_learner(cfg, endpoints, args.run_dir, resume=args.resume, bind_host=args.bind_host,
-                           keys=args.keys)
+                           security=_security(args))
 
     return _run("higher-learner", go)
 
 
 def _role_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--learner", required=True, help="the learner's control endpoint, tcp://HOST:PORT")
-    p.add_argument("--keys", default=None, help="CURVE keys folder (from higher-keys)")
+    _security_flags(p, binds=False)
     p.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: the run's)")
 
 
@@ -152,6 +171,8 @@ def relabeler_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-relabeler", description="The relabeler: instruction generator service.")
     _role_flags(p)
     p.add_argument("--bind-host", default=None, help="interface to bind its episodes socket")
+    p.add_argument("--insecure", action="store_true",
+                   help="allow binding beyond loopback without --keys (anyone reaching the port can push episodes)")
     p.add_argument("--advertise", default=None, metavar="tcp://HOST:PORT",
                    help="its episodes endpoint as actors should reach it (default: the learner's host, base+4)")
     p.add_argument("--state-dir", default=None, help="where its checkpoint goes (default: the run dir)")
@@ -166,7 +187,7 @@ def relabeler_main(argv: list[str] | None = None) -> int:
 
             parse_endpoint(args.advertise)
         return run_relabeler(args.learner, state_dir=args.state_dir, resume=args.resume, bind_host=args.bind_host,
-                             keys=args.keys, threads=args.threads, advertise=args.advertise)
+                             security=_security(args), threads=args.threads, advertise=args.advertise)
 
     return _run("higher-relabeler", go)
 
@@ -180,7 +201,7 @@ def actor_main(argv: list[str] | None = None) -> int:
     def go() -> int:
         from higher_dist.roles.actor import run_actor
 
-        return run_actor(args.learner, actor_id=args.actor_id, keys=args.keys, threads=args.threads)
+        return run_actor(args.learner, actor_id=args.actor_id, security=_security(args), threads=args.threads)
 
     return _run("higher-actor", go)
 
@@ -189,13 +210,15 @@ def dashboard_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-dashboard", description="Attach a live dashboard to a running cluster.")
     p.add_argument("--learner", required=True, help="the learner's control endpoint, tcp://HOST:PORT")
     p.add_argument("--seconds", type=float, default=None, help="exit after this long")
+    _security_flags(p, binds=False)
     args = p.parse_args(argv)
 
     def go() -> int:
         from higher_dist.launch.topology import Endpoints
         from higher_dist.roles.dashboard import run_dashboard
 
-        return run_dashboard(Endpoints.from_control(args.learner).telemetry, stop_after_s=args.seconds)
+        return run_dashboard(Endpoints.from_control(args.learner).telemetry, stop_after_s=args.seconds,
+                             security=_security(args))
 
     return _run("higher-dashboard", go)
 
@@ -236,6 +259,18 @@ def bench_main(argv: list[str] | None = None) -> int:
 
 def plot_main(argv: list[str] | None = None) -> int:
     from higher_dist.plot import main
+
+    return main(sys.argv[1:] if argv is None else argv)
+
+
+def reproduce_main(argv: list[str] | None = None) -> int:
+    from higher_dist.reproduce.cli import main
+
+    return main(sys.argv[1:] if argv is None else argv)
+
+
+def render_main(argv: list[str] | None = None) -> int:
+    from higher_dist.render import main
 
     return main(sys.argv[1:] if argv is None else argv)
 

@@ -76,6 +76,13 @@ class DQNConfig:
     target_period: int = 500  # updates between hard target copies
     polyak_tau: float = 0.005
     double: bool = True
+    # Speed levers, each measured with `higher-bench learner --levers` (docs/benchmarks.md); none
+    # changes the maths. compile: torch.compile the loss (forward + backward), built on a background
+    # thread while eager updates run, eager for good if it fails. joint_online: one online forward over
+    # obs and next_obs stacked. prefetch: sample the next batch on a thread during the update.
+    compile: bool = True
+    joint_online: bool = False
+    prefetch: bool = False
 
 
 @dataclass(frozen=True)
@@ -216,10 +223,11 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
     cfg = Config(preset=preset, world=w, relabel=relabel)
     if world == "small":
         # The small world has few goals: the generator learns them from a few dozen pairs, and the
-        # replay fills in seconds.
+        # replay fills in seconds. Its runs (tests, smoke runs) last seconds to minutes: compiling the
+        # loss would cost more CPU than it saves.
         cfg = replace(
             cfg,
-            dqn=replace(cfg.dqn, batch_size=64, lr=5e-4),
+            dqn=replace(cfg.dqn, batch_size=64, lr=5e-4, compile=False),
             generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=50.0, eval_every_updates=50),
             replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
             exploration=replace(cfg.exploration, decay_frames=50_000),

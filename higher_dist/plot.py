@@ -8,6 +8,9 @@ common frames grid and drawn as a mean with a min-max band.
 
 Writes success_rate.png, success_rate_heldout.png (when held-out evaluations exist),
 generator_accuracy.png (when a generator was trained) and replay_composition.png.
+
+Given a `higher-reproduce` folder (one holding plan.json), it draws that plan's figures instead (mean and
+one standard deviation over seeds, into DIR/figures) and rewrites DIR/results.md.
 """
 from __future__ import annotations
 
@@ -223,6 +226,11 @@ def main(argv: list[str]) -> int:
     parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories (or a folder of runs)")
     parser.add_argument("--out", default="plots", help="where the PNG files go (default: ./plots)")
     args = parser.parse_args(argv)
+    if len(args.runs) == 1 and (Path(args.runs[0]) / "plan.json").is_file():
+        # A higher-reproduce folder: the paper's figures (mean and one std over seeds) and results.md.
+        from higher_dist.reproduce.cli import report
+
+        return report(Path(args.runs[0]))
     try:
         runs = find_runs(args.runs)
     except NoRun as e:

@@ -12,7 +12,8 @@ import sys
 # name -> module under higher_dist.bench with a main(argv) -> int
 COMMANDS: dict[str, str] = {
     "world": "world_bench", "learner": "learner_bench", "wire": "wire_bench",
-    "generator": "generator_bench", "cluster": "cluster_bench", "all": "run_all",
+    "generator": "generator_bench", "cluster": "cluster_bench", "soak": "soak_bench", "all": "run_all",
+    "time-to-success": "time_to_success_bench",
 }
 
 

@@ -1,7 +1,7 @@
 """`higher-bench cluster --seconds S`: the whole system, end to end, on this machine.
 
 Starts `higher-cluster` (the `higher` preset on the paper world by default) as a separate process
-tree, waits for learning to start (warm-up), then measures over S seconds from the learner's own
+tree, waits for learning to start and the learner's loss to be compiled (warm-up), then measures over S seconds from the learner's own
 metrics: env frames/s, learner updates/s, samples per frame, weights version lag, and the peak RSS of
 every role (sampled with psutil). `learner_ratio` divides the cluster's updates/s by the learner alone
 on a synthetic replay at the same batch size (`higher-bench learner`), measured in the same run.
@@ -62,7 +62,9 @@ def measure_cluster(seconds: float, preset: str, world: str, actors: int | None,
     metrics = run_dir / "metrics.jsonl"
     peak: dict[str, int] = {}
     try:
-        start = _wait_for(metrics, lambda r: r.get("updates", 0) >= warmup_updates, 600, proc)
+        # Warm-up ends once learning runs and the learner's background compile (dqn.compile) is done.
+        start = _wait_for(metrics, lambda r: r.get("updates", 0) >= warmup_updates and not r.get("compile_pending"),
+                          900, proc)
         t0 = time.time()
         while time.time() - t0 < seconds:
             for child in psutil.Process(proc.pid).children(recursive=True):

@@ -28,6 +28,7 @@ import torch
 from higher_dist.config import GeneratorConfig, WorldConfig, world_by_name
 from higher_dist.learning.generator import GeneratorTrainer
 from higher_dist.world.grid import BatchedFetchAttr
+from higher_dist.world.spec import WorldSpec
 from higher_dist.world.language import VOCAB, expert_tokens
 
 _DIRECTIONS = np.array([(-1, 0), (0, 1), (1, 0), (0, -1)])  # (drow, dcol) of up, right, down, left
@@ -77,7 +78,7 @@ def run(pairs: int, steps: int, seed: int, world: WorldConfig, eval_pairs: int,
     # All N pairs train (the dataset's own validation split is made negligible): the held-out
     # measures below use fresh pairs instead.
     cfg = replace(cfg or GeneratorConfig(), capacity=max(pairs, 10), val_fraction=1e-9)
-    trainer = GeneratorTrainer(cfg, seed)
+    trainer = GeneratorTrainer(cfg, WorldSpec.of(world), seed=seed)
     trainer.dataset.add_many(train[0], train[1])
     t1 = time.perf_counter()
     chunk = max(1, min(500, steps))

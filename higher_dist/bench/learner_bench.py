@@ -1,16 +1,22 @@
-"""Learner speed: DQN updates/s and samples/s at batch 64, 128, 256 on synthetic batches.
+"""Learner speed: samples/s at batch 64, 128, 256, and what each speed lever is worth.
 
-Each update is the full learner step (online forward on obs, online and target forwards on next_obs,
-backward, gradient clipping, Adam, target update) on random but valid views and missions prepared
-ahead, so the figure measures the network and optimizer, not batch generation or the replay.
-Alongside wall-clock rates it reports CPU time per update: on a shared machine the wall figure
-moves with the neighbours' load, the CPU figure much less. The last line is one JSON object.
+Every row runs the learner's real step, `LearnerCore.update`: prioritized sampling from a full
+100k-transition replay of random but valid episodes, the DQN step (forwards, backward, clipping, Adam,
+target update) and the priority update. A row is one setting of the levers of `DQNConfig` (compile,
+joint_online, prefetch) plus bf16 autocast, which is not a config field (it measured slower here).
+`--levers` measures each lever switched on alone against all of them off, then the defaults; rows are
+run round-robin `--repeat` times (A/B interleaved, so a neighbour's load hits every row alike) and
+the median is reported. Alongside wall-clock samples/s it reports CPU samples/s (CPU time of the whole
+process, prefetch thread included), which moves less with the machine's load. Compiling happens
+before timing (synchronously) and its seconds are printed. The last line is one JSON object.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
+import statistics
 import time
 from types import SimpleNamespace
 
@@ -105,15 +111,47 @@ def synthetic_episode(rng: np.random.Generator, length: int, view_size: int = 7)
                    mission=mission, outcome=outcome, picked=np.full(4, -1, np.int8), goal=np.zeros(4, np.int8))
 
 
-def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmup: int = 5) -> float:
-    """Updates/s of the learner alone, through the same path as in the cluster (LearnerCore.update:
-    prioritized sampling from a full replay, the DQN step, the priority update)."""
+@dataclasses.dataclass(frozen=True)
+class Lever:
+    """One row of the table: DQNConfig overrides plus bf16 autocast."""
+    name: str
+    compile: bool = False
+    joint_online: bool = False
+    prefetch: bool = False
+    bf16: bool = False
+
+    def dqn_overrides(self) -> dict[str, bool]:
+        return {"dqn.compile": self.compile, "dqn.joint_online": self.joint_online, "dqn.prefetch": self.prefetch}
+
+
+def default_lever() -> Lever:
+    from higher_dist.config import DQNConfig
+
+    d = DQNConfig()
+    return Lever("defaults", compile=d.compile, joint_online=d.joint_online, prefetch=d.prefetch)
+
+
+def lever_rows() -> list[Lever]:
+    return [
+        Lever("eager (all levers off)"),
+        Lever("+ joint online forward", joint_online=True),
+        Lever("+ prefetch", prefetch=True),
+        Lever("+ bf16 autocast", bf16=True),
+        Lever("+ compile", compile=True),
+        Lever("+ compile + joint", compile=True, joint_online=True),
+        default_lever(),
+    ]
+
+
+def make_core(batch_size: int, lever: Lever, cfg=None, threads: int = 1):
+    """A LearnerCore with a full replay of synthetic episodes, its loss compiled when the lever says so.
+    Returns (core, seconds spent compiling or None)."""
     from higher_dist.config import make_config, override
     from higher_dist.learning.learner_core import LearnerCore
 
     cfg = cfg or make_config("higher", "paper")
-    cfg = override(cfg, **{"dqn.batch_size": batch_size, "replay.capacity": 100_000})
-    torch.set_num_threads(cfg.torch_threads)
+    cfg = override(cfg, **{"dqn.batch_size": batch_size, "replay.capacity": 100_000, **lever.dqn_overrides()})
+    torch.set_num_threads(threads)
     core = LearnerCore(cfg)
     rng = np.random.default_rng(0)
     pool = [synthetic_episode(rng, int(rng.integers(5, cfg.world.max_steps + 1))) for _ in range(64)]
@@ -122,59 +160,138 @@ def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmu
         episode = pool[int(rng.integers(len(pool)))]
         core.replay.add_episode(episode)
         added += episode.length
-    for _ in range(warmup):
-        core.update()
-    n, t0 = 0, time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
-        core.update()
-        n += 1
-    return n / (time.perf_counter() - t0)
+    compile_s = None
+    if core.dqn.compiled is not None:
+        t0 = time.perf_counter()
+        batch = core.replay.sample(batch_size, 1.0)
+        core.dqn.compiled.start(core.dqn._tensors(batch), background=False)
+        compile_s = time.perf_counter() - t0
+        if core.dqn.compiled.failed:
+            print(f"compile failed, the row runs eager: {core.dqn.compiled.failed}")
+    return core, compile_s
+
+
+def time_updates(core, seconds: float, warmup: int = 5, bf16: bool = False) -> dict[str, float]:
+    """Wall and CPU samples/s of `core.update` over `seconds` of wall time."""
+    autocast = torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
+    b = core.cfg.dqn.batch_size
+    with autocast:
+        for _ in range(warmup):
+            core.update()
+        n = 0
+        wall0, cpu0 = time.perf_counter(), time.process_time()
+        while time.perf_counter() - wall0 < seconds:
+            core.update()
+            n += 1
+        wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    return {"samples_per_s": n * b / wall, "cpu_samples_per_s": n * b / cpu, "updates_per_s": n / wall}
+
+
+def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmup: int = 5) -> float:
+    """Updates/s of the learner alone, through the same path as in the cluster (LearnerCore.update,
+    with the config's levers, compiled before timing)."""
+    from higher_dist.config import make_config
+
+    cfg = cfg or make_config("higher", "paper")
+    d = cfg.dqn
+    core, _ = make_core(batch_size, Lever("config", d.compile, d.joint_online, d.prefetch), cfg, cfg.torch_threads)
+    try:
+        return time_updates(core, seconds, warmup)["updates_per_s"]
+    finally:
+        core.close()
+
+
+def run_table(levers: list[Lever], sizes: list[int], seconds: float, repeat: int, threads: int) -> dict:
+    """Round-robin over (lever, size) `repeat` times; medians per cell."""
+    cores, compile_s = {}, {}
+    for lever in levers:
+        for b in sizes:
+            cores[lever, b], compile_s[lever, b] = make_core(b, lever, threads=threads)
+    runs: dict[tuple, list[dict]] = {key: [] for key in cores}
+    try:
+        for _ in range(repeat):
+            for key, core in cores.items():
+                runs[key].append(time_updates(core, seconds, bf16=key[0].bf16))
+    finally:
+        for core in cores.values():
+            core.close()
+    table = {}
+    for (lever, b), rs in runs.items():
+        table[lever.name, b] = {
+            "samples_per_s": statistics.median(r["samples_per_s"] for r in rs),
+            "updates_per_s": statistics.median(r["updates_per_s"] for r in rs),
+            "cpu_samples_per_s": statistics.median(r["cpu_samples_per_s"] for r in rs),
+            "runs": [round(r["samples_per_s"]) for r in rs], "compile_s": compile_s[lever, b],
+        }
+    return table
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="higher-bench learner", description=__doc__.split("\n")[0])
-    parser.add_argument("--seconds", type=float, default=3.0, help="timed seconds per batch size")
-    parser.add_argument("--warmup", type=int, default=10, help="untimed updates per batch size")
+    parser.add_argument("--seconds", type=float, default=3.0, help="timed seconds per cell and round")
+    parser.add_argument("--repeat", type=int, default=1, help="round-robin rounds; the median is reported")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     parser.add_argument("--batch-sizes", default=",".join(map(str, BATCH_SIZES)))
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--levers", action="store_true", help="every lever alone, then the defaults")
+    parser.add_argument("--only", nargs="*", metavar="LEVER", choices=["compile", "joint", "prefetch", "bf16"],
+                        help="one row with just these levers on (e.g. --only compile prefetch)")
     parser.add_argument("--net", type=_parse_override, action="append", default=[], metavar="FIELD=VALUE",
-                        help="override a NetworkConfig field, e.g. --net embed_dim=8 --net conv_channels=16,32")
+                        help="network shape, raw network step only: --net frame_stack=1 --net conv_channels=16,32")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    sizes = [int(s) for s in args.batch_sizes.split(",") if s]
+    if args.net:
+        return _network_shape(args, sizes)
+    if args.levers:
+        levers = lever_rows()
+    elif args.only is not None:
+        on = set(args.only)
+        levers = [Lever("+ " + " + ".join(sorted(on)) if on else "eager (all levers off)", compile="compile" in on,
+                        joint_online="joint" in on, prefetch="prefetch" in on, bf16="bf16" in on)]
+    else:
+        levers = [Lever("eager (all levers off)"), default_lever()]
+    print(f"learner bench: {args.threads} thread(s), torch {torch.__version__}, "
+          f"{count_parameters(DQNLearner(NetworkConfig(), DQNConfig(compile=False)).online)} parameters, "
+          f"full prioritized replay, median of {args.repeat} interleaved round(s) of {args.seconds:g} s")
+    table = run_table(levers, sizes, args.seconds, args.repeat, args.threads)
+    head = "".join(f"{'B=' + str(b):>10}" for b in sizes)
+    print(f"{'samples/s (wall)':<28}{head}   {'cpu samples/s':>14} at B=" + "/".join(map(str, sizes)))
+    summary: dict[str, object] = {"threads": args.threads, "repeat": args.repeat, "rows": {}}
+    for lever in levers:
+        cells = [table[lever.name, b] for b in sizes]
+        compile_note = [c["compile_s"] for c in cells if c["compile_s"] is not None]
+        note = f"   (compile {max(compile_note):.0f} s)" if compile_note else ""
+        print(f"{lever.name:<28}" + "".join(f"{c['samples_per_s']:>10,.0f}" for c in cells) + "   "
+              + "/".join(f"{c['cpu_samples_per_s']:,.0f}" for c in cells) + note)
+        summary["rows"][lever.name] = {f"b{b}": {k: (round(v) if isinstance(v, float) else v) for k, v in c.items()}
+                                       for b, c in zip(sizes, cells)}
+    defaults = next((lv for lv in levers if lv.name == "defaults"), levers[-1])
+    for b in sizes:
+        cell = table[defaults.name, b]
+        summary[f"b{b}_samples_per_s"] = round(cell["samples_per_s"])
+        summary[f"b{b}_updates_per_s"] = round(cell["updates_per_s"], 1)
+        summary[f"b{b}_cpu_samples_per_s"] = round(cell["cpu_samples_per_s"])
+    print(json.dumps(summary))
+    return 0
+
+
+def _network_shape(args, sizes: list[int]) -> int:
+    """The raw DQN step (synthetic batches, no replay) for a network shape, eager: the figure a shape
+    change is judged by before a learning run decides whether it keeps its success."""
     torch.set_num_threads(args.threads)
     net_cfg = dataclasses.replace(NetworkConfig(), **dict(args.net))
-    dqn_cfg = DQNConfig()
-    sizes = [int(s) for s in args.batch_sizes.split(",") if s]
+    dqn_cfg = DQNConfig(compile=False)
     rng = np.random.default_rng(args.seed)
-
-    params = count_parameters(DQNLearner(net_cfg, dqn_cfg, device=args.device).online)
-    print(f"learner bench: {args.threads} thread(s), device {args.device}, torch {torch.__version__}, "
-          f"{params} parameters")
-    print(f"network: {dataclasses.asdict(net_cfg)}")
-    print(f"{'batch':>6} {'updates/s':>10} {'samples/s':>10} {'ms/update':>10} {'cpu ms/upd':>11} {'cpu samples/s':>14}")
-    summary: dict[str, object] = {"threads": args.threads, "device": args.device, "parameters": params,
-                                  "network": dataclasses.asdict(net_cfg)}
+    print(f"network {dataclasses.asdict(net_cfg)}, "
+          f"{count_parameters(DQNLearner(net_cfg, dqn_cfg).online)} parameters, eager")
+    summary: dict[str, object] = {"network": dataclasses.asdict(net_cfg)}
     for b in sizes:
-        # A fresh learner per size: Adam state and target schedule start alike for every row.
-        learner = DQNLearner(net_cfg, dqn_cfg, device=args.device, seed=args.seed)
+        learner = DQNLearner(net_cfg, dqn_cfg, seed=args.seed)
         batches = [synthetic_batch(rng, b, net_cfg.frame_stack, gamma=dqn_cfg.gamma, n_step=dqn_cfg.n_step)
                    for _ in range(_POOL)]
-        r = measure(learner, batches, args.seconds, args.warmup)
-        print(f"{b:>6} {r['updates_per_s']:>10.1f} {r['samples_per_s']:>10.0f} {r['ms_per_update']:>10.2f} "
-              f"{r['cpu_ms_per_update']:>11.2f} {r['cpu_samples_per_s']:>14.0f}")
-        summary[f"b{b}_updates_per_s"] = round(r["updates_per_s"], 1)
-        summary[f"b{b}_samples_per_s"] = round(r["samples_per_s"], 0)
-        summary[f"b{b}_cpu_samples_per_s"] = round(r["cpu_samples_per_s"], 0)
-    if args.device == "cpu" and not args.net:
-        # The same, through the full learner path: sampling a full prioritized replay and updating
-        # priorities. This is the ceiling the cluster's learner_ratio is measured against.
-        print("with a full prioritized replay (sample + update + priorities), default config:")
-        for b in sizes:
-            ups = measure_updates_per_s(b, args.seconds)
-            print(f"{b:>6} {ups:>10.1f} {ups * b:>10.0f}")
-            summary[f"replay_b{b}_updates_per_s"] = round(ups, 1)
-            summary[f"replay_b{b}_samples_per_s"] = round(ups * b, 0)
+        r = measure(learner, batches, args.seconds, 10)
+        print(f"B={b:<5} {r['samples_per_s']:>10,.0f} samples/s   {r['cpu_samples_per_s']:>10,.0f} cpu samples/s")
+        summary[f"b{b}_samples_per_s"] = round(r["samples_per_s"])
     print(json.dumps(summary))
     return 0
 

@@ -18,8 +18,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from higher_dist.config import Config
-from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, check_free
+from higher_dist.launch.channels import CHANNELS, check_exposure
+from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, bind_address, check_free, parse_endpoint
 from higher_dist.rundir import RunDir, read_metrics
+from higher_dist.wire.security import Security
 
 GRACE_S = 20.0  # time each role gets to checkpoint and exit after SIGTERM
 
@@ -55,25 +57,26 @@ def _cli(role: str, *args: str) -> list[str]:
 
 
 def build_roles(cfg: Config, run_dir: RunDir, endpoints: Endpoints, resume: bool, dashboard: bool,
-                keys: str | None) -> list[RoleProcess]:
+                security: Security, bind_host: str | None = None) -> list[RoleProcess]:
     logs = run_dir.path / "logs"
     logs.mkdir(exist_ok=True)
     requested = run_dir.path / "config.requested.json"
     requested.write_text(cfg.to_json())
-    host, port = endpoints.control.rsplit(":", 1)
-    security = ["--keys", keys] if keys else []
+    host, port = parse_endpoint(endpoints.control)
+    keys = ["--keys", str(security.keys)] if security.encrypted else []
+    binding = (["--bind-host", bind_host] if bind_host else []) + (["--insecure"] if security.insecure else [])
     learner = _cli("learner", "--config", str(requested), "--run-dir", str(run_dir.path),
-                   "--host", host.replace("tcp://", ""), "--port-base", port, *security,
+                   "--host", host, "--port-base", str(port), *keys, *binding,
                    *(["--resume"] if resume else []))
     relabeler = _cli("relabeler", "--learner", endpoints.control, "--state-dir", str(run_dir.path),
-                     *security, *(["--resume"] if resume else []))
+                     *keys, *binding, *(["--resume"] if resume else []))
     roles = [RoleProcess("learner", learner, logs / "learner.log"),
              RoleProcess("relabeler", relabeler, logs / "relabeler.log")]
     for i in range(cfg.actors):
-        argv = _cli("actor", "--learner", endpoints.control, "--actor-id", str(i), *security)
+        argv = _cli("actor", "--learner", endpoints.control, "--actor-id", str(i), *keys)
         roles.append(RoleProcess(f"actor{i}", argv, logs / f"actor{i}.log"))
     if dashboard:
-        roles.append(RoleProcess("dashboard", _cli("dashboard", "--learner", endpoints.control),
+        roles.append(RoleProcess("dashboard", _cli("dashboard", "--learner", endpoints.control, *keys),
                                  logs / "dashboard.log", essential=False))
     return roles
 
@@ -163,14 +166,18 @@ class Supervisor:
 
 def run_local_cluster(cfg: Config, run_dir: str, resume: bool = False, dashboard: bool = True,
                       host: str = "127.0.0.1", port_base: int | None = None, max_restarts: int = 5,
-                      keys: str | None = None) -> int:
+                      security: Security | None = None, bind_host: str | None = None) -> int:
+    security = security or Security()
+    endpoints = Endpoints.from_base(host, port_base or DEFAULT_BASE_PORT)
+    # Refused here, once, rather than by each role in a restart loop.
+    check_exposure({name: bind_address(endpoints[name], bind_host) for name in CHANNELS}, security)
     rd = RunDir(run_dir)
     if resume and rd.load_checkpoint("learner") is None:
         raise ValueError(f"--resume: no learner checkpoint in {rd.path}")
-    endpoints = Endpoints.from_base(host, port_base or DEFAULT_BASE_PORT)
-    check_free(endpoints)
+    check_free(endpoints, bind_host)
     dashboard = dashboard and sys.stdout.isatty()
-    sup = Supervisor(build_roles(cfg, rd, endpoints, resume, dashboard, keys), max_restarts, rd, quiet=dashboard)
+    sup = Supervisor(build_roles(cfg, rd, endpoints, resume, dashboard, security, bind_host), max_restarts, rd,
+                     quiet=dashboard)
     stop_requested = []
 
     def on_signal(signum, _frame):

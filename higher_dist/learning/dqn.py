@@ -14,10 +14,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from higher_dist.config import DQNConfig, NetworkConfig
+from higher_dist.learning.compiled_loss import CompiledLoss
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 from higher_dist.learning.networks import QNetwork, load_weights_numpy, weights_numpy
 
-__all__ = ["TransitionBatchLike", "dqn_loss", "DQNLearner"]
+__all__ = ["TransitionBatchLike", "dqn_terms", "dqn_loss", "DQNLearner"]
 
 
 class TransitionBatchLike(Protocol):
@@ -36,7 +37,7 @@ class TransitionBatchLike(Protocol):
     weights: np.ndarray  # (B,) float32 importance weights
 
 
-def dqn_loss(
+def dqn_terms(
     online: nn.Module,
     target: nn.Module,
     obs: torch.Tensor,
@@ -48,15 +49,27 @@ def dqn_loss(
     weights: torch.Tensor,
     huber_delta: float = 1.0,
     double: bool = True,
-) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
-    """Importance-weighted Huber loss of the (double) DQN n-step TD error.
+    joint_online: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The loss as tensors only (no host syncs, so it can be compiled): (loss, |td| (B,) detached,
+    mean Q of the taken actions, mean target). See `dqn_loss` for the maths.
 
-    target y = reward + discount * Q_target(next_obs, a*), with a* = argmax Q_online(next_obs) when
-    `double` (decouples action choice from evaluation, curbing over-estimation) or argmax Q_target
-    otherwise. The mission is shared by obs and next_obs: it is the goal of the whole episode.
-    Returns (scalar loss, |td| detached as new priorities (B,), float metrics).
+    joint_online: one online forward over obs and next_obs stacked (2B rows) instead of two. The
+    next_obs rows only choose a*; argmax passes no gradient, so the loss and its gradient are the
+    same, for fewer, larger operations.
     """
-    if hasattr(online, "encode_mission"):
+    b = obs.shape[0]
+    shares_text = hasattr(online, "encode_mission")
+    if joint_online:
+        views = torch.cat([obs, next_obs])
+        if shares_text:
+            # A QNetwork: encode the shared mission once for both halves.
+            text = online.encode_mission(mission)
+            q_both = online.q_values(views, torch.cat([text, text]))
+        else:
+            q_both = online(views, torch.cat([mission, mission]))
+        q_all, online_next = q_both[:b], (lambda: q_both[b:].detach())  # noqa: E731
+    elif shares_text:
         # A QNetwork: encode the shared mission once and reuse it (detached) for next_obs.
         text = online.encode_mission(mission)
         q_all = online.q_values(obs, text)
@@ -73,13 +86,38 @@ def dqn_loss(
     per_sample = F.huber_loss(q, y, reduction="none", delta=huber_delta)
     loss = (weights * per_sample).mean()
     td_abs = (y - q).detach().abs()
-    metrics = {
-        "loss": float(loss.detach()),
-        "q_mean": float(q.detach().mean()),
-        "td_abs_mean": float(td_abs.mean()),
-        "target_mean": float(y.mean()),
-    }
-    return loss, td_abs, metrics
+    return loss, td_abs, q.detach().mean(), y.mean()
+
+
+def dqn_loss(
+    online: nn.Module,
+    target: nn.Module,
+    obs: torch.Tensor,
+    mission: torch.Tensor,
+    action: torch.Tensor,
+    reward: torch.Tensor,
+    discount: torch.Tensor,
+    next_obs: torch.Tensor,
+    weights: torch.Tensor,
+    huber_delta: float = 1.0,
+    double: bool = True,
+    joint_online: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    """Importance-weighted Huber loss of the (double) DQN n-step TD error.
+
+    target y = reward + discount * Q_target(next_obs, a*), with a* = argmax Q_online(next_obs) when
+    `double` (decouples action choice from evaluation, curbing over-estimation) or argmax Q_target
+    otherwise. The mission is shared by obs and next_obs: it is the goal of the whole episode.
+    Returns (scalar loss, |td| detached as new priorities (B,), float metrics).
+    """
+    loss, td_abs, q_mean, y_mean = dqn_terms(online, target, obs, mission, action, reward, discount, next_obs,
+                                             weights, huber_delta, double, joint_online)
+    return loss, td_abs, _metrics(loss, td_abs, q_mean, y_mean)
+
+
+def _metrics(loss: torch.Tensor, td_abs: torch.Tensor, q_mean: torch.Tensor, y_mean: torch.Tensor) -> dict[str, float]:
+    return {"loss": float(loss.detach()), "q_mean": float(q_mean), "td_abs_mean": float(td_abs.mean()),
+            "target_mean": float(y_mean)}
 
 
 def _make_adam(params: list[nn.Parameter], lr: float, eps: float) -> torch.optim.Adam:
@@ -114,6 +152,10 @@ class DQNLearner:
         self.optimizer = _make_adam(self._online_params, dqn_cfg.lr, dqn_cfg.adam_eps)
         self.updates = 0
         self.skipped_updates = 0  # steps refused for a non-finite gradient
+        self.compiled: CompiledLoss | None = None
+        if dqn_cfg.compile:
+            self.compiled = CompiledLoss(dqn_terms, self.online, self.target, huber_delta=dqn_cfg.huber_delta,
+                                         double=dqn_cfg.double, joint_online=dqn_cfg.joint_online)
 
     def _tensors(self, batch: Any) -> dict[str, torch.Tensor]:
         dev = self.device
@@ -136,8 +178,8 @@ class DQNLearner:
         """One gradient step on `batch` (see `TransitionBatchLike`); returns (new priorities (B,), metrics)."""
         tensors = self._tensors(batch)
         self.online.train()
-        loss, priorities, metrics = dqn_loss(self.online, self.target, huber_delta=self.cfg.huber_delta,
-                                             double=self.cfg.double, **tensors)
+        loss, priorities, q_mean, y_mean = self._loss_terms(tensors)
+        metrics = _metrics(loss, priorities, q_mean, y_mean)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = float(torch.nn.utils.clip_grad_norm_(self._online_params, self.cfg.grad_clip, foreach=True))
@@ -152,7 +194,30 @@ class DQNLearner:
         self._update_target()
         metrics["grad_norm"] = grad_norm
         metrics["skipped_updates"] = float(self.skipped_updates)
+        c = self.compiled
+        # 1 while dqn.compile's background compile runs (the cluster benchmark waits for it to end).
+        metrics["compile_pending"] = float(c is not None and c.started and not c.ready and not c.failed)
+        metrics["loss_compiled"] = float(self._ran_compiled)
         return priorities.cpu().numpy().astype(np.float32, copy=False), metrics
+
+    def _loss_terms(self, tensors: dict[str, torch.Tensor]):
+        """dqn_terms, compiled once the background compile is ready (started by the first batch, whose
+        shapes it specialises to), eager until then or when it failed."""
+        c = self.compiled
+        self._ran_compiled = False
+        if c is None or c.failed:
+            return dqn_terms(self.online, self.target, huber_delta=self.cfg.huber_delta, double=self.cfg.double,
+                             joint_online=self.cfg.joint_online, **tensors)
+        if not c.started:
+            c.start(tensors)
+        if not c.accepts(tensors):
+            return dqn_terms(self.online, self.target, huber_delta=self.cfg.huber_delta, double=self.cfg.double,
+                             joint_online=self.cfg.joint_online, **tensors)
+        # The compiled graph has no room for a data-dependent raise: check the views here.
+        self.online.view.check_views(tensors["obs"])
+        self.online.view.check_views(tensors["next_obs"])
+        self._ran_compiled = True
+        return c(tensors)
 
     def _update_target(self) -> None:
         if self.cfg.target_update == "period":

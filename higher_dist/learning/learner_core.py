@@ -4,6 +4,7 @@ cluster's learner role both drive this one object."""
 from __future__ import annotations
 
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
@@ -29,6 +30,13 @@ class LearnerCore:
         self.relabelled_episodes = 0
         self.recent_success: deque[int] = deque(maxlen=1000)  # training success over original episodes
         self.last_metrics: dict[str, float] = {}
+        # dqn.prefetch: the next batch is sampled on this thread while the current update runs (numpy
+        # and torch release the GIL in their kernels, so a second core overlaps them). Every other
+        # replay access first waits for it (`_settle`), so the order of replay operations, and with it
+        # the run, stays deterministic: batch n+1 is drawn right after batch n, before batch n's
+        # priorities are written and before newer episodes arrive.
+        self._prefetcher = ThreadPoolExecutor(1, thread_name_prefix="prefetch") if cfg.dqn.prefetch else None
+        self._next_batch: Future | None = None
 
     @property
     def updates(self) -> int:
@@ -36,6 +44,7 @@ class LearnerCore:
 
     # -- experience -------------------------------------------------------------------------------
     def add_episodes(self, episodes: list[Episode]) -> None:
+        self._settle()
         count_copies = self.cfg.replay.ratio_counts == "transitions"
         for ep in episodes:
             self.replay.add_episode(ep)
@@ -59,13 +68,32 @@ class LearnerCore:
     def update(self) -> dict[str, float]:
         """One prioritized DQN update; priorities come back from the loss as data."""
         batch_size = self.cfg.dqn.batch_size
-        beta = self.replay.beta_at(self.frames)
-        batch = self.replay.sample(batch_size, beta)
+        if self._prefetcher is None:
+            batch = self._sample()
+        else:
+            batch = self._next_batch.result() if self._next_batch is not None else self._sample()
+            self._next_batch = self._prefetcher.submit(self._sample)
         priorities, metrics = self.dqn.update(batch)
+        self._settle()
         self.replay.update_priorities(batch.indices, priorities, batch.generations)
         self.limiter.record_sample(batch_size)
         self.last_metrics = metrics
         return metrics
+
+    def _sample(self):
+        return self.replay.sample(self.cfg.dqn.batch_size, self.replay.beta_at(self.frames))
+
+    def _settle(self) -> None:
+        """Wait for an in-flight prefetch, so the replay is not read and written at once."""
+        if self._next_batch is not None:
+            self._next_batch.exception()  # waits; a failed sample re-raises at .result() in update
+
+    def close(self) -> None:
+        """Stop the prefetch thread (also safe to skip: it is idle between updates)."""
+        self._settle()
+        self._next_batch = None
+        if self._prefetcher is not None:
+            self._prefetcher.shutdown(wait=True)
 
     def train_available(self, max_updates: int) -> int:
         """Run updates while the ratio allows, at most `max_updates`; returns how many ran."""
@@ -93,6 +121,10 @@ class LearnerCore:
         return out
 
     def state_dict(self, with_replay: bool = False) -> dict:
+        # A prefetched batch is not part of the state: drop it, so the replay's RNG in the checkpoint
+        # is the one the next update continues from (resume stays exact).
+        self._settle()
+        self._next_batch = None
         state = {
             "dqn": self.dqn.state_dict(), "limiter": self.limiter.state_dict(),
             "counters": {"frames": self.frames, "episodes": self.episodes, "updates": self.updates,
@@ -104,6 +136,8 @@ class LearnerCore:
         return state
 
     def load_state_dict(self, state: dict) -> None:
+        self._settle()
+        self._next_batch = None
         self.dqn.load_state_dict(state["dqn"])
         self.limiter.load_state_dict(state["limiter"])
         c = state["counters"]

@@ -44,7 +44,7 @@ class _SmallTableLookup(torch.autograd.Function):
 
 def lookup(index: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
     """Rows of `table` named by `index` (any shape) -> index.shape + (E,)."""
-    if torch.is_grad_enabled() and table.requires_grad:
+    if torch.is_grad_enabled() and table.requires_grad and not torch.compiler.is_compiling():
         return _SmallTableLookup.apply(index, table)
     return F.embedding(index, table)
 
@@ -99,10 +99,9 @@ class ViewEncoder(nn.Module):
                  + shade[None, None, :, None] + size[None, None, None, :])
         return table.reshape(self.cell_codes, self.embed_dim)
 
-    def embed_views(self, views: torch.Tensor) -> torch.Tensor:
-        """(B, k, V, V, 4) integer views -> (B, k*E, V, V) float maps (channels-last in memory)."""
-        b, k, v, _, c = views.shape
-        if k != self.in_frames or c != len(self.channel_values):
+    def check_views(self, views: torch.Tensor) -> None:
+        """ValueError unless `views` is (B, k, V, V, 4) of integers within each channel's range."""
+        if views.ndim != 5 or views.shape[1] != self.in_frames or views.shape[4] != len(self.channel_values):
             raise ValueError(f"views: expected (B, {self.in_frames}, V, V, 4), got {tuple(views.shape)}")
         if views.dtype.is_floating_point or views.dtype.is_complex or views.dtype == torch.bool:
             raise ValueError(f"views: expected an integer dtype (uint8), got {views.dtype}")
@@ -111,6 +110,13 @@ class ViewEncoder(nn.Module):
         too_big = (views.amax(dim=(0, 1, 2, 3)) > self.channel_max).any()
         if bool(too_big) or (views.dtype != torch.uint8 and bool(views.amin() < 0)):
             raise ValueError(f"views: channel values out of range [0, {self.channel_max.tolist()}]")
+
+    def embed_views(self, views: torch.Tensor) -> torch.Tensor:
+        """(B, k, V, V, 4) integer views -> (B, k*E, V, V) float maps (channels-last in memory)."""
+        b, k, v, _, c = views.shape
+        if not torch.compiler.is_compiling():
+            # A compiled caller checks before entering the graph (a data-dependent raise would break it).
+            self.check_views(views)
         # Frames next to the embedding in memory: the lookup then writes (B, V, V, k*E) directly,
         # which the convolution takes as channels-last without a transposing copy.
         cells = views.permute(0, 2, 3, 1, 4).long()
@@ -151,6 +157,9 @@ class InstructionEncoder(nn.Module):
 
     def forward(self, mission: torch.Tensor) -> torch.Tensor:
         lengths = (mission != PAD_ID).sum(dim=1).clamp(min=1)
+        if torch.compiler.is_compiling():
+            # Traced: no data-dependent cut, and the recurrence written out so the compiler fuses it.
+            return self.unrolled(lookup(mission, self.embed.weight), lengths)
         longest = int(lengths.max())
         if longest < mission.shape[1]:
             mission = mission[:, :longest]  # columns of PAD only: skip their GRU steps
@@ -158,6 +167,24 @@ class InstructionEncoder(nn.Module):
         out, _ = self.gru(lookup(mission, self.embed.weight))  # (B, L, H)
         index = (lengths - 1).view(-1, 1, 1).expand(-1, 1, self.hidden)
         return out.gather(1, index).squeeze(1)
+
+    def unrolled(self, words: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+        """The same GRU as `self.gru` (same weights, same gate equations, r/z/n order) as a loop of
+        plain tensor ops over the L steps; each row's state stops changing after its last word, so the
+        final state is the one `forward` gathers. Input projections for all steps are one matmul."""
+        g = self.gru
+        gi = F.linear(words, g.weight_ih_l0, g.bias_ih_l0)  # (B, L, 3H)
+        h = words.new_zeros(words.shape[0], self.hidden)
+        for t in range(words.shape[1]):
+            gh = F.linear(h, g.weight_hh_l0, g.bias_hh_l0)
+            i_r, i_z, i_n = gi[:, t].chunk(3, dim=1)
+            h_r, h_z, h_n = gh.chunk(3, dim=1)
+            r = torch.sigmoid(i_r + h_r)
+            z = torch.sigmoid(i_z + h_z)
+            n = torch.tanh(i_n + r * h_n)
+            step = n + z * (h - n)
+            h = torch.where((t < lengths).unsqueeze(1), step, h)
+        return h
 
 
 class QNetwork(nn.Module):

@@ -16,12 +16,13 @@ import numpy as np
 import torch
 import zmq
 
-from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM
+from higher_dist.launch.channels import open_channel
 from higher_dist.learning.acting import act
 from higher_dist.learning.agent import AgentBuilder
 from higher_dist.roles.client import start_role
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.episodes import pack_episodes
+from higher_dist.wire.security import Security
 from higher_dist.world.spec import SUCCESS
 
 log = logging.getLogger("higher.actor")
@@ -29,15 +30,15 @@ SEND_EVERY_S = 0.25  # a batch leaves at least this often, full or not
 WAIT_MS = 20  # longest wait for room on the episodes socket before looking at control again
 
 
-def run_actor(learner: str, actor_id: int | None = None, keys: str | None = None, threads: int | None = None) -> int:
-    client, cfg, endpoints, stop = start_role(learner, "actor", actor_id, keys, threads)
+def run_actor(learner: str, actor_id: int | None = None, security: Security | None = None,
+              threads: int | None = None) -> int:
+    client, cfg, endpoints, stop = start_role(learner, "actor", actor_id, security, threads)
     idx = client.index
     agent = AgentBuilder(cfg)
     torch.manual_seed(agent.seeds.actor_torch(idx))
     ctx = zmq.Context.instance()
-    weights_sub = sockets.make_socket(ctx, zmq.SUB, connect=endpoints["weights"], conflate=True, curve=client.curve)
-    out = sockets.PendingSend(sockets.make_socket(ctx, zmq.PUSH, connect=endpoints["episodes"], hwm=EXPERIENCE_HWM,
-                                                  kernel_buffer_bytes=EXPERIENCE_BUFFER, curve=client.curve))
+    weights_sub = open_channel(ctx, "weights", "connect", endpoints.weights, client.security)
+    out = sockets.PendingSend(open_channel(ctx, "episodes", "connect", endpoints.episodes, client.security))
     collector = agent.collector(idx)
     policy = agent.policy()
     expected = {k: v.shape for k, v in policy.net.state_dict().items()}

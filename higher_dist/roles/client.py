@@ -18,9 +18,10 @@ import torch
 import zmq
 
 from higher_dist.config import Config, from_dict
+from higher_dist.launch.channels import open_channel
 from higher_dist.launch.topology import Endpoints
 from higher_dist.wire import codec, sockets
-from higher_dist.wire.security import CurveClient
+from higher_dist.wire.security import Security
 from higher_dist.wire.schema import PROTOCOL_VERSION
 
 
@@ -35,13 +36,12 @@ class Refused(RuntimeError):
 
 
 class ControlClient:
-    def __init__(self, learner: str, role: str, index: int | None, keys: str | None = None):
+    def __init__(self, learner: str, role: str, index: int | None, security: Security | None = None):
         Endpoints.from_control(learner)  # a malformed address fails here, with its reason
         self.role, self.index = role, -1 if index is None else index
         self.ctx = zmq.Context.instance()
-        self.keys = keys
-        self.curve = CurveClient(keys) if keys else None
-        self.sock = sockets.make_socket(self.ctx, zmq.DEALER, connect=learner, hwm=100, curve=self.curve)
+        self.security = security or Security()
+        self.sock = open_channel(self.ctx, "control", "connect", learner, self.security)
         self.rejects = sockets.RejectCounter()
         self.stop_reason: str | None = None
         self.restarts = int(os.environ.get("HIGHER_RESTARTS", "0"))
@@ -56,7 +56,7 @@ class ControlClient:
         except zmq.Again:
             pass  # the learner is gone or slow; heartbeats are periodic, the next one will do
 
-    def join(self, timeout_s: float = 120.0, should_stop=None) -> tuple[Config, dict[str, str]]:
+    def join(self, timeout_s: float = 120.0, should_stop=None) -> tuple[Config, Endpoints]:
         """Hello until welcomed; returns the learner's config and endpoints. KeyboardInterrupt when
         `should_stop()` turns true while waiting (a signal arrived)."""
         deadline = time.time() + timeout_s
@@ -76,7 +76,11 @@ class ControlClient:
                     raise Refused(f"protocol mismatch: learner {msg.fields['protocol']}, this role {PROTOCOL_VERSION}")
                 self.index = msg.fields["index"]
                 self._hello["index"] = self.index  # a later hello (rejoin) keeps this index
-                return from_dict(msg.fields["config"]), dict(msg.fields["endpoints"])
+                try:
+                    endpoints = Endpoints.from_dict(msg.fields["endpoints"])
+                except ValueError as e:
+                    raise Refused(f"the learner's welcome has unusable endpoints: {e}") from None
+                return from_dict(msg.fields["config"]), endpoints
         raise TimeoutError(f"no welcome from the learner within {timeout_s:.0f} s")
 
     @staticmethod
@@ -117,10 +121,11 @@ class ControlClient:
     def close(self) -> None:
         self.heartbeat({}, state="stopping")
         self.sock.close(linger=200)
+        self.security.close()
 
 
-def start_role(learner: str, role: str, index: int | None, keys: str | None,
-               threads: int | None) -> tuple[ControlClient, Config, dict[str, str], list]:
+def start_role(learner: str, role: str, index: int | None, security: Security | None,
+               threads: int | None) -> tuple[ControlClient, Config, Endpoints, list]:
     """What every non-head role does first: logging, stop on SIGINT/SIGTERM, join the learner, set
     torch's threads. Returns (client, config, endpoints, stop flag). A refusal ends the process with
     exit code 2 and the learner's reason; a signal while waiting for the welcome ends it with 0."""
@@ -128,7 +133,7 @@ def start_role(learner: str, role: str, index: int | None, keys: str | None,
     stop: list = []
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda *_: stop.append(1))
-    client = ControlClient(learner, role, index, keys)
+    client = ControlClient(learner, role, index, security)
     try:
         cfg, endpoints = client.join(should_stop=lambda: bool(stop))
     except Refused as e:

@@ -6,9 +6,9 @@ SUB socket is CONFLATEd with a tiny high-water mark: a slow terminal can never m
 anywhere. A frame that does not decode to a telemetry message is counted and ignored; a `stop` message
 ends the dashboard (the learner sends it on shutdown).
 
-Endpoints: the telemetry socket is the learner's control port + 3 (launch/topology.py lays out
-control=B, experience=B+1, weights=B+2, telemetry=B+3, relabeler=B+4), so a dashboard needs only the
-control endpoint an actor is given; `telemetry_endpoint_for` does that arithmetic.
+Endpoints: a dashboard needs only the learner's control endpoint; `telemetry_endpoint_for` asks
+launch/topology.py (the only place that knows the port layout) for the telemetry channel's. Under --keys
+the telemetry is encrypted like every channel and the dashboard connects with a client key pair.
 """
 from __future__ import annotations
 
@@ -19,8 +19,10 @@ import zmq
 from rich.console import Console
 from rich.live import Live
 
+from higher_dist.launch.channels import open_channel
 from higher_dist.roles.dashboard_view import DashboardState, render
-from higher_dist.wire import codec, sockets
+from higher_dist.wire import codec
+from higher_dist.wire.security import Security
 
 MAX_FRAME_BYTES = 8 << 20  # a telemetry record is a few kB; refuse to buffer anything absurd
 
@@ -49,13 +51,9 @@ def decode_record(frame: bytes) -> dict[str, Any] | None:
     return msg.fields["record"] if msg.type == "telemetry" else None
 
 
-def _subscribe(ctx: zmq.Context, endpoint: str) -> zmq.Socket:
-    # Only the newest record matters: a conflated subscription never queues stale ones.
-    return sockets.make_socket(ctx, zmq.SUB, connect=endpoint, conflate=True, hwm=4, linger_ms=0)
-
-
 def run_dashboard(telemetry_endpoint: str, refresh_per_s: float = 4.0, stop_after_s: float | None = None,
-                  console: Console | None = None, state: DashboardState | None = None) -> int:
+                  console: Console | None = None, state: DashboardState | None = None,
+                  security: Security | None = None) -> int:
     """Draw the telemetry at `telemetry_endpoint` until Ctrl-C, a stop record or `stop_after_s`.
 
     `state` may be passed to inspect what was received after the call returns (tests do). Returns 0:
@@ -68,7 +66,8 @@ def run_dashboard(telemetry_endpoint: str, refresh_per_s: float = 4.0, stop_afte
     deadline = None if stop_after_s is None else time.monotonic() + stop_after_s
     poll_ms = max(1, int(1000 / refresh_per_s))
     ctx = zmq.Context()  # our own context, so term() cannot wait on sockets of the caller's
-    sock = _subscribe(ctx, telemetry_endpoint)
+    # Only the newest record matters: the telemetry channel's subscription is conflated.
+    sock = open_channel(ctx, "telemetry", "connect", telemetry_endpoint, security or Security())
     try:
         with Live(render(state), console=console, screen=False, transient=False,
                   refresh_per_second=refresh_per_s, auto_refresh=True) as live:

@@ -27,14 +27,15 @@ import zmq
 from higher_dist import config as config_mod
 from higher_dist import metrics as m
 from higher_dist.config import Config
-from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM, Endpoints, bind_address
+from higher_dist.launch.channels import CHANNELS, check_exposure, open_channel
+from higher_dist.launch.topology import Endpoints, bind_address
 from higher_dist.learning.agent import AgentBuilder
 from higher_dist.roles.client import REJECT_STAT_PREFIX, REJOIN
 from higher_dist.roles.evaluator import BackgroundEvaluator
-from higher_dist.roles.registry import RateMeter, RoleRegistry
+from higher_dist.roles.registry import NoSlot, RateMeter, RoleRegistry
 from higher_dist.rundir import RunDir, plain_record
 from higher_dist.wire import codec, sockets
-from higher_dist.wire.security import CurveServer, start_authenticator
+from higher_dist.wire.security import Security
 from higher_dist.wire.episodes import unpack_episodes
 from higher_dist.wire.schema import PROTOCOL_VERSION
 
@@ -45,10 +46,15 @@ WEIGHTS_REPUBLISH_S = 2.0  # late subscribers (a restarted actor) get weights wi
 
 class LearnerRole:
     def __init__(self, cfg: Config, endpoints: Endpoints, run_dir: str, resume: bool = False,
-                 bind_host: str | None = None, keys: str | None = None):
+                 bind_host: str | None = None, security: Security | None = None):
         torch.set_num_threads(cfg.torch_threads)
         torch.manual_seed(cfg.seed)
         self.cfg, self.endpoints = cfg, endpoints
+        # Without keys, every port bound beyond loopback is named at once, before anything is written:
+        # refused, or warned about under --insecure.
+        self.security = security or Security()
+        check_exposure({name: bind_address(endpoints[name], bind_host) for name, channel in CHANNELS.items()
+                        if channel.binder == "learner"}, self.security)
         self.rd = RunDir(run_dir, tensorboard=cfg.tensorboard)
         self.agent = AgentBuilder(cfg)
         self.core = self.agent.learner_core()
@@ -70,16 +76,10 @@ class LearnerRole:
         self.evaluation = self.agent.evaluation_cadence(self.core.frames)
         self.rd.write_config(cfg)
         ctx = zmq.Context.instance()
-        b = lambda ep: bind_address(ep, bind_host)  # noqa: E731
-        curve = CurveServer(keys) if keys else None
-        # With keys, only clients on the allow-list get through the CURVE handshake.
-        self.auth = start_authenticator(ctx, keys) if keys else None
-        self.control = sockets.make_socket(ctx, zmq.ROUTER, bind=b(endpoints.control), hwm=1000, curve=curve)
-        # A small receive queue: when the learner stops reading, senders block instead of piling up.
-        self.experience = sockets.make_socket(ctx, zmq.PULL, bind=b(endpoints.experience), hwm=EXPERIENCE_HWM,
-                                                  kernel_buffer_bytes=EXPERIENCE_BUFFER, curve=curve)
-        self.weights = sockets.make_socket(ctx, zmq.PUB, bind=b(endpoints.weights), hwm=2, curve=curve)
-        self.telemetry = sockets.make_socket(ctx, zmq.PUB, bind=b(endpoints.telemetry), hwm=10)
+        # With keys, every socket is a CURVE server and only clients on the allow-list get through.
+        self.control, self.experience, self.weights, self.telemetry = (
+            open_channel(ctx, name, "bind", endpoints[name], self.security, bind_host)
+            for name in ("control", "experience", "weights", "telemetry"))
 
     # -- state --------------------------------------------------------------------------------------
     def _resume(self) -> None:
@@ -103,10 +103,15 @@ class LearnerRole:
         sockets.send_routed(self.control, identity, codec.encode(msg_type, fields, sender="learner"), zmq.NOBLOCK)
 
     def _welcome(self, identity: bytes, index: int) -> None:
-        eps = self.endpoints.as_dict()
-        eps["episodes"] = self.relabeler_endpoint or eps["relabeler"]
-        self._send(identity, "welcome", {"config": self.cfg.to_dict(), "endpoints": eps,
+        eps = self.endpoints
+        if self.relabeler_endpoint is not None:
+            eps = eps.with_endpoint("episodes", self.relabeler_endpoint)
+        self._send(identity, "welcome", {"config": self.cfg.to_dict(), "endpoints": eps.as_dict(),
                                          "protocol": PROTOCOL_VERSION, "index": index})
+
+    def _capacity(self, role: str) -> int | None:
+        """How many of a role the run has numbers for (actors: the config's count; dashboards: any)."""
+        return {"actor": self.cfg.actors, "relabeler": 1}.get(role)
 
     def handle_control(self, identity: bytes, msg) -> None:
         f = msg.fields
@@ -117,10 +122,15 @@ class LearnerRole:
             if f["role"] not in ("actor", "relabeler", "dashboard"):
                 self._send(identity, "refuse", {"reason": f"unknown role {f['role']!r}"})
                 return
-            index = f["index"] if f["index"] >= 0 else self.registry.next_index(f["role"])
+            try:
+                index = self.registry.assign(f["role"], identity, f["index"], self._capacity(f["role"]))
+            except NoSlot as e:
+                self._send(identity, "refuse", {"reason": str(e)})
+                return
             self.registry.hello(f["role"], index, identity, f["host"], f["pid"])
             if f["role"] == "actor" and self.relabeler_endpoint is None:
-                self.pending_hellos.append((identity, index))  # answered once the relabeler registers
+                if (identity, index) not in self.pending_hellos:  # answered once the relabeler registers
+                    self.pending_hellos.append((identity, index))
             else:
                 self._welcome(identity, index)
             return
@@ -133,6 +143,11 @@ class LearnerRole:
             return
         if msg.type == "register":  # repeated by the relabeler, so a restarted learner learns it again
             if info.role != "relabeler":
+                self.rejects.add("field")
+                return
+            try:
+                self.endpoints.with_endpoint("episodes", f["endpoint"])
+            except ValueError:
                 self.rejects.add("field")
                 return
             self.relabeler_endpoint = f["endpoint"]
@@ -306,13 +321,12 @@ class LearnerRole:
         self.checkpoint()
         for s in (self.control, self.experience, self.weights, self.telemetry):
             s.close(linger=200)
-        if self.auth is not None:
-            self.auth.stop()
+        self.security.close()
         log.info("learner stopped: %s", self.stop_reason)
 
 
 def run_learner(cfg: Config, endpoints: Endpoints, run_dir: str, resume: bool = False,
-                bind_host: str | None = None, keys: str | None = None) -> int:
+                bind_host: str | None = None, security: Security | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     config_mod.validate(cfg)
-    return LearnerRole(cfg, endpoints, run_dir, resume, bind_host, keys).run()
+    return LearnerRole(cfg, endpoints, run_dir, resume, bind_host, security).run()

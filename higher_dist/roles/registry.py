@@ -2,6 +2,13 @@
 
 A role silent for longer than `dead_after_s` is marked dead (the launcher restarts crashed processes;
 this table is what the dashboard shows). Pure bookkeeping: no sockets.
+
+Numbers (an actor's number sets its epsilon): a role asking for a fixed number gets it if it is inside
+the run's count for that role, and takes over the entry (a supervisor restarting "actor 3" means it). A
+role asking for any number keeps the one its connection already has (a repeated hello), else gets the
+lowest number whose holder is dead or stopped; when every number is held by a live role it is refused.
+The count does not grow: actors cannot join beyond the learner's --actors, because each actor's epsilon
+is placed among that many.
 """
 from __future__ import annotations
 
@@ -23,20 +30,48 @@ class RoleInfo:
     stopped: bool = False
 
 
+class NoSlot(ValueError):
+    """A hello that cannot be given a number; the message is the reason sent in the refusal."""
+
+
 class RoleRegistry:
     def __init__(self, dead_after_s: float = 10.0):
         self.dead_after_s = dead_after_s
         self.roles: dict[tuple[str, int], RoleInfo] = {}
         self._by_identity: dict[bytes, tuple[str, int]] = {}
 
-    def next_index(self, role: str) -> int:
-        taken = {i for (r, i) in self.roles if r == role}
-        return next(i for i in range(len(taken) + 1) if i not in taken)
+    def _live(self, info: RoleInfo, now: float) -> bool:
+        return not info.stopped and now - info.last_seen <= self.dead_after_s
+
+    def assign(self, role: str, identity: bytes, requested: int, capacity: int | None,
+               now: float | None = None) -> int:
+        """The number for a hello (see the module's docstring), or NoSlot with the reason."""
+        now = time.time() if now is None else now
+        flag = "--actors" if role == "actor" else None
+        if requested >= 0:
+            if capacity is not None and requested >= capacity:
+                more = f"; start the learner with {flag} {requested + 1} or more" if flag else ""
+                raise NoSlot(f"{role} number {requested} is outside this run's {capacity} {role}(s), "
+                             f"numbered 0 to {capacity - 1}{more}")
+            return requested
+        key = self._by_identity.get(identity)
+        if key is not None and key[0] == role and self.roles.get(key) is not None \
+                and self.roles[key].identity == identity:
+            return key[1]  # a repeated hello on the same connection keeps its number
+        held = {i for (r, i), info in self.roles.items() if r == role and self._live(info, now)}
+        limit = capacity if capacity is not None else len(held) + 1
+        for index in range(limit):
+            if index not in held:
+                return index
+        more = f"; start the learner with a larger {flag}" if flag else ""
+        raise NoSlot(f"all {capacity} {role} numbers are held by live {role}s{more}")
 
     def hello(self, role: str, index: int, identity: bytes, host: str, pid: int) -> RoleInfo:
         key = (role, index)
         info = self.roles.get(key)
         if info is None or info.identity != identity:
+            if info is not None:
+                self._by_identity.pop(info.identity, None)  # the old holder of this number is replaced
             info = RoleInfo(role, index, identity, host, pid)
             self.roles[key] = info
         info.host, info.pid, info.last_seen, info.stopped = host, pid, time.time(), False

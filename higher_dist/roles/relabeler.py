@@ -18,13 +18,13 @@ from pathlib import Path
 
 import zmq
 
-from higher_dist.launch.topology import EXPERIENCE_BUFFER, EXPERIENCE_HWM, bind_address
+from higher_dist.launch.channels import open_channel
 from higher_dist.learning.agent import AgentBuilder, train_generator
 from higher_dist.roles.client import start_role
 from higher_dist.rundir import RunDir
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.episodes import pack_episodes, unpack_episodes
-from higher_dist.wire.security import CurveServer
+from higher_dist.wire.security import Security
 
 log = logging.getLogger("higher.relabeler")
 CHECKPOINT_EVERY_S = 60.0  # at most; cfg.checkpoint_every_s when that is shorter
@@ -81,8 +81,8 @@ class Relabeler:
 
 
 def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = False, bind_host: str | None = None,
-                  keys: str | None = None, threads: int | None = None, advertise: str | None = None) -> int:
-    client, cfg, endpoints, stop = start_role(learner, "relabeler", 0, keys, threads)
+                  security: Security | None = None, threads: int | None = None, advertise: str | None = None) -> int:
+    client, cfg, endpoints, stop = start_role(learner, "relabeler", 0, security, threads)
     service = Relabeler(AgentBuilder(cfg), client.rejects)
     rd = RunDir(state_dir or Path("runs") / "relabeler")
     if resume:
@@ -91,13 +91,10 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
             service.load_state_dict(state)
             log.info("resumed the relabeler's generator and dataset from %s", rd.checkpoint_path("relabeler"))
     ctx = zmq.Context.instance()
-    episodes_endpoint = advertise or endpoints["relabeler"]
-    server = CurveServer(keys) if keys else None
-    inbox = sockets.make_socket(ctx, zmq.PULL, bind=bind_address(episodes_endpoint, bind_host),
-                                hwm=EXPERIENCE_HWM, kernel_buffer_bytes=EXPERIENCE_BUFFER, curve=server)
-    outbox = sockets.PendingSend(sockets.make_socket(ctx, zmq.PUSH, connect=endpoints["experience"],
-                                                     hwm=EXPERIENCE_HWM, kernel_buffer_bytes=EXPERIENCE_BUFFER,
-                                                     curve=client.curve))
+    episodes_endpoint = advertise or endpoints.episodes
+    # A CURVE server of its own: the security object starts this process's authenticator on first bind.
+    inbox = open_channel(ctx, "episodes", "bind", episodes_endpoint, client.security, bind_host)
+    outbox = sockets.PendingSend(open_channel(ctx, "experience", "connect", endpoints.experience, client.security))
     client.send("register", {"role": "relabeler", "endpoint": episodes_endpoint})
     last_stats = last_ckpt = time.time()
     relabels_window = (time.time(), 0)

@@ -25,7 +25,7 @@ import numpy as np
 from higher_dist.learning.episode import Episode
 from higher_dist.wire.codec import Message, WireError
 from higher_dist.world.language import parse
-from higher_dist.world.spec import ACTION_PICK, SUCCESS, TIMEOUT, WRONG_PICK, WorldSpec
+from higher_dist.world.spec import ACTION_PICK, KIND_KEY, SUCCESS, TIMEOUT, WRONG_PICK, WorldSpec
 
 # Why one episode of an otherwise well-formed batch was dropped (counter names, one per check).
 EPISODE_REJECTS = (
@@ -149,6 +149,10 @@ def _episode_faults(a: dict, spec: WorldSpec, allow_relabelled: bool, n_actors: 
     cell_ok = np.ones(frames.shape[:-1], dtype=bool)
     for c in range(frames.shape[-1]):
         cell_ok &= allowed_cell[c, np.minimum(frames[..., c], allowed_cell.shape[1] - 1)]
+    # An object shows all three attributes; anything else (unseen, empty, wall) shows none.
+    is_object = frames[..., 0] >= KIND_KEY
+    attrs_set = frames[..., 1:] > 0
+    cell_ok &= np.where(is_object, attrs_set.all(axis=-1), ~attrs_set.any(axis=-1))
     frame_bad = ~cell_ok.reshape(frames.shape[0], -1).all(axis=1)
     flag(np.add.reduceat(frame_bad, frame_ends - lengths - 1) > 0 if n else frame_bad[:0], "cell")
     # Outcome versus length, last action, picked object and goal.

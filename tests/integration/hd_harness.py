@@ -113,10 +113,11 @@ class PidTracker:
 class Proc:
     """One process started for a test, in its own session, its output in `log_path`."""
 
-    def __init__(self, argv: list[str], log_path: Path, cwd: Path, tracker: PidTracker | None = None):
+    def __init__(self, argv: list[str], log_path: Path, cwd: Path, tracker: PidTracker | None = None,
+                 env: dict[str, str] | None = None):
         self.argv, self.log_path = argv, Path(log_path)
         self.tracker = tracker or PidTracker()
-        env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+        env = dict(os.environ if env is None else env, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
         env.pop("HIGHER_RESTARTS", None)
         with open(self.log_path, "ab") as out:
             self.popen = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,

@@ -173,7 +173,7 @@ def test_garbage_is_counted_and_dropped_and_learning_goes_on(cluster):
 
         control = sock(zmq.DEALER, cluster.endpoints.control)
         experience = sock(zmq.PUSH, cluster.endpoints.experience)
-        relabeler = sock(zmq.PUSH, cluster.endpoints.relabeler)
+        relabeler = sock(zmq.PUSH, cluster.endpoints.episodes)
         _send_all(control, control_msgs)
         # The hello of another version is answered with a refusal that says why.
         reply = codec.decode(control.recv_multipart())

@@ -3,6 +3,7 @@ gradient clipping, checkpoints and published weights."""
 from __future__ import annotations
 
 import copy
+import shutil
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,7 +15,8 @@ from torch import nn
 
 from higher_dist.world.spec import DEFAULT_SPEC
 from higher_dist.config import DQNConfig, NetworkConfig
-from higher_dist.learning.dqn import DQNLearner, dqn_loss
+from higher_dist.learning.compiled_loss import CompiledLoss
+from higher_dist.learning.dqn import DQNLearner, dqn_loss, dqn_terms
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
 
 torch.set_num_threads(1)
@@ -55,16 +57,32 @@ def reference(q_on, q_tg, action, reward, discount, weights, delta, double):
     return (weights * huber).mean(), np.abs(td), y, grad
 
 
-def run_loss(q_on, q_tg, action, reward, discount, weights, delta=1.0, double=True):
+def run_loss(q_on, q_tg, action, reward, discount, weights, delta=1.0, double=True, path="separate"):
+    """path: "separate" online forwards, one "joint" forward over obs and next_obs, or "compiled"
+    (torch.compile of the same terms)."""
     b = len(action)
     online, target = TableQ(q_on), TableQ(q_tg)
-    loss, prio, metrics = dqn_loss(
-        online, target, obs=ids_as_obs(np.arange(b)), mission=torch.zeros(b, 10, dtype=torch.long),
-        action=torch.tensor(action), reward=torch.tensor(reward, dtype=torch.float32),
-        discount=torch.tensor(discount, dtype=torch.float32), next_obs=ids_as_obs(np.arange(b) + b),
-        weights=torch.tensor(weights, dtype=torch.float32), huber_delta=delta, double=double)
+    batch = dict(obs=ids_as_obs(np.arange(b)), mission=torch.zeros(b, 10, dtype=torch.long),
+                 action=torch.tensor(action), reward=torch.tensor(reward, dtype=torch.float32),
+                 discount=torch.tensor(discount, dtype=torch.float32), next_obs=ids_as_obs(np.arange(b) + b),
+                 weights=torch.tensor(weights, dtype=torch.float32))
+    if path == "compiled":
+        compiled = CompiledLoss(dqn_terms, online, target, huber_delta=delta, double=double, joint_online=False)
+        compiled.start(batch, background=False)
+        assert compiled.ready, compiled.failed
+        loss, prio, q_mean, y_mean = compiled(batch)
+        metrics = {"loss": loss.item(), "q_mean": q_mean.item(), "td_abs_mean": prio.mean().item(),
+                   "target_mean": y_mean.item()}
+    else:
+        loss, prio, metrics = dqn_loss(online, target, **batch, huber_delta=delta, double=double,
+                                       joint_online=path == "joint")
     loss.backward()
     return loss, prio, metrics, online, target
+
+
+needs_cxx = pytest.mark.skipif(not (shutil.which("g++") or shutil.which("c++") or shutil.which("clang++")),
+                               reason="torch.compile's CPU backend needs a C++ compiler; none on this machine")
+PATHS = ["separate", "joint", pytest.param("compiled", marks=needs_cxx)]
 
 
 # A hand-made batch of 6 n-step (n=3) transitions, reward/discount as the replay forms them.
@@ -94,11 +112,12 @@ DISCOUNT = np.array([
 WEIGHTS = np.array([1.0, 0.5, 0.25, 1.0, 0.8, 0.3])
 
 
-@pytest.mark.parametrize("double", [True, False])
-@pytest.mark.parametrize("delta", [1.0, 0.5])
-def test_loss_priorities_metrics_and_gradient_match_numpy(double: bool, delta: float) -> None:
+@pytest.mark.parametrize("double,delta,path", [
+    (double, delta, path) for double in (True, False) for delta in (1.0, 0.5) for path in ("separate", "joint")
+] + [(True, 1.0, PATHS[2])])
+def test_loss_priorities_metrics_and_gradient_match_numpy(double: bool, delta: float, path: str) -> None:
     loss, prio, metrics, online, target = run_loss(Q_ONLINE, Q_TARGET, ACTION, REWARD, DISCOUNT, WEIGHTS,
-                                                   delta, double)
+                                                   delta, double, path)
     ref_loss, ref_prio, ref_y, ref_grad = reference(Q_ONLINE, Q_TARGET, ACTION, REWARD, DISCOUNT, WEIGHTS,
                                                     delta, double)
     assert loss.ndim == 0
@@ -144,8 +163,9 @@ def test_double_and_vanilla_targets_differ_only_where_the_argmax_does() -> None:
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 2 ** 32 - 1), double=st.booleans(), delta=st.sampled_from([0.3, 1.0, 2.0]))
-def test_random_batches_match_numpy(seed: int, double: bool, delta: float) -> None:
+@given(seed=st.integers(0, 2 ** 32 - 1), double=st.booleans(), delta=st.sampled_from([0.3, 1.0, 2.0]),
+       joint=st.booleans())
+def test_random_batches_match_numpy(seed: int, double: bool, delta: float, joint: bool) -> None:
     rng = np.random.default_rng(seed)
     b = int(rng.integers(1, 20))
     q_on, q_tg = rng.normal(0, 2, (2 * b, 4)), rng.normal(0, 2, (2 * b, 4))
@@ -153,7 +173,8 @@ def test_random_batches_match_numpy(seed: int, double: bool, delta: float) -> No
     reward = rng.normal(0, 1, b)
     discount = np.where(rng.random(b) < 0.3, 0.0, GAMMA ** rng.integers(1, 4, b))
     weights = rng.uniform(0.1, 1.0, b)
-    loss, prio, _, online, _ = run_loss(q_on, q_tg, action, reward, discount, weights, delta, double)
+    loss, prio, _, online, _ = run_loss(q_on, q_tg, action, reward, discount, weights, delta, double,
+                                        "joint" if joint else "separate")
     ref_loss, ref_prio, _, ref_grad = reference(q_on.astype(np.float32), q_tg.astype(np.float32), action,
                                                 reward, discount, weights, delta, double)
     assert loss.item() == pytest.approx(ref_loss, rel=1e-4, abs=1e-6)
@@ -217,7 +238,8 @@ def test_shared_mission_encoding_equals_generic_path() -> None:
 
 
 def make_learner(**dqn_overrides) -> DQNLearner:
-    return DQNLearner(SMALL, DQNConfig(**dqn_overrides), seed=0)
+    # Eager unless a test asks: a background compile would switch paths in the middle of a test.
+    return DQNLearner(SMALL, DQNConfig(**{"compile": False, **dqn_overrides}), seed=0)
 
 
 def params_of(net: nn.Module) -> list[torch.Tensor]:
@@ -307,7 +329,7 @@ def test_state_dict_resumes_exactly() -> None:
     for batch in batches[:3]:
         a.update(batch)
     state = copy.deepcopy(a.state_dict())
-    b = DQNLearner(SMALL, DQNConfig(target_period=2), seed=123)
+    b = DQNLearner(SMALL, DQNConfig(target_period=2, compile=False), seed=123)
     b.load_state_dict(state)
     assert b.updates == 3
     prio_a, _ = a.update(batches[3])
@@ -330,7 +352,60 @@ def test_published_weights_reproduce_the_learners_q_values() -> None:
     assert q_learner.shape == (5, 4)
     np.testing.assert_array_equal(q_actor, q_learner)
     # Loading into the learner sets both networks.
-    other = DQNLearner(SMALL, DQNConfig(), seed=99)
+    other = DQNLearner(SMALL, DQNConfig(compile=False), seed=99)
     other.load_weights_numpy(learner.weights_numpy())
     assert same(params_of(other.online), params_of(learner.online))
     assert same(params_of(other.target), params_of(learner.online))
+
+
+def test_joint_online_forward_equals_separate_forwards_on_a_real_network() -> None:
+    """One online forward over obs and next_obs stacked: same loss, priorities and gradients."""
+    torch.manual_seed(0)
+    online, target = QNetwork(SMALL), QNetwork(SMALL)
+    tensors = batch_tensors(random_batch(np.random.default_rng(9), 11))
+    results = []
+    for joint in (False, True):
+        online.zero_grad()
+        loss, prio, _ = dqn_loss(online, target, **tensors, joint_online=joint)
+        loss.backward()
+        results.append((loss.detach(), prio, [p.grad.clone() for p in online.parameters()]))
+    (loss_a, prio_a, grads_a), (loss_b, prio_b, grads_b) = results
+    assert torch.allclose(loss_a, loss_b, atol=1e-6) and torch.allclose(prio_a, prio_b, atol=1e-6)
+    for g_a, g_b in zip(grads_a, grads_b):
+        assert torch.allclose(g_a, g_b, atol=1e-6)
+
+
+@needs_cxx
+def test_compiled_and_eager_learners_agree_update_by_update() -> None:
+    """The compiled loss (inductor) steps the same as eager: same priorities, metrics and weights after
+    several updates, within float round-off (the compiler may reorder sums)."""
+    rng = np.random.default_rng(10)
+    batches = [random_batch(rng, 16) for _ in range(4)]
+    eager = make_learner(target_period=2)
+    compiled = make_learner(target_period=2, compile=True)
+    compiled.compiled.start(compiled._tensors(batches[0]), background=False)
+    assert compiled.compiled.ready, compiled.compiled.failed
+    for batch in batches:
+        prio_e, metrics_e = eager.update(batch)
+        prio_c, metrics_c = compiled.update(batch)
+        np.testing.assert_allclose(prio_c, prio_e, rtol=1e-4, atol=1e-5)
+        for key in ("loss", "q_mean", "td_abs_mean", "target_mean", "grad_norm"):
+            assert metrics_c[key] == pytest.approx(metrics_e[key], rel=1e-4, abs=1e-6), key
+    for p_e, p_c in zip(params_of(eager.online), params_of(compiled.online)):
+        assert torch.allclose(p_e, p_c, rtol=1e-4, atol=1e-5)
+    # The compiled graph refuses nothing by itself: the learner still checks the views first.
+    bad = random_batch(rng, 16)
+    bad.obs[0, 0, 0, 0, 0] = 9
+    with pytest.raises(ValueError, match="out of range"):
+        compiled.update(bad)
+
+
+def test_a_failed_compile_leaves_the_learner_eager() -> None:
+    learner = make_learner(compile=True)
+    batch = random_batch(np.random.default_rng(11), 8)
+    tensors = learner._tensors(batch)
+    tensors["obs"] = tensors["obs"][:, :1]  # a frame stack the network cannot take: tracing raises
+    learner.compiled.start(tensors, background=False)
+    assert not learner.compiled.ready and "expected" in learner.compiled.failed
+    prio, metrics = learner.update(batch)  # the eager path, as if compile were off
+    assert prio.shape == (8,) and np.isfinite(metrics["loss"])

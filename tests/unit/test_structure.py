@@ -120,10 +120,11 @@ def test_generator_pace_is_per_frame_and_forgives_what_cannot_run():
 def test_runner_trains_the_generator_at_the_configured_pace():
     from higher_dist.learning.runner import SingleProcessRunner
 
-    cfg = make_config("higher", "small", frames=3000, actors=1, **{"generator.updates_per_kframe": 10.0,
-                                                                  "replay.min_size": 100})
+    cfg = make_config("higher", "small", frames=2000, actors=1, **{"generator.updates_per_kframe": 10.0,
+                                                                  "replay.min_size": 100,
+                                                                  "replay.samples_per_insert": 0.5})
     runner = SingleProcessRunner(cfg)
-    runner.run(frames=3000, metrics_every=3000)
+    runner.run(frames=2000, metrics_every=2000)
     # Every frame of an original episode counts once; updates owed are 10 per 1000 such frames.
     assert runner.pace.frames == runner.core.frames
     assert runner.pace.settled == int(runner.core.frames * 10 / 1000)

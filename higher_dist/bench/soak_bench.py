@@ -1,0 +1,144 @@
+"""`higher-bench soak --minutes M`: does any role's memory grow? A paper-world cluster run for M minutes.
+
+Starts `higher-cluster` (the `higher` preset on the paper world by default), samples the resident set
+size (RSS) of every role process every `--sample-every` seconds, and reports per role the growth in
+MiB/hour after a warm-up (the least-squares slope of RSS over time, so one noisy sample does not decide
+it), with a verdict against the target (< 5 MiB/h). A restarted role is followed under its role name
+(its RSS restarts too, which the report flags). The learner's last metrics record comes with the report,
+so a soak is also a learning run. Prints a table and writes JSON (`--out`).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+from higher_dist.launch.topology import free_base_port
+from higher_dist.rundir import read_metrics
+
+TARGET_MIB_PER_H = 5.0
+ROLE_MARKERS = {"learner_main": "learner", "relabeler_main": "relabeler", "actor_main": "actor",
+                "dashboard_main": "dashboard"}
+
+
+def roles_of(root: psutil.Process) -> dict[str, psutil.Process]:
+    """Role name (actor0, actor1, learner, relabeler) -> process, among `root`'s descendants."""
+    out: dict[str, psutil.Process] = {}
+    counts: dict[str, int] = {}
+    for proc in sorted(root.children(recursive=True), key=lambda p: p.pid):
+        try:
+            cmd = " ".join(proc.cmdline())
+        except psutil.Error:
+            continue
+        role = next((r for marker, r in ROLE_MARKERS.items() if marker in cmd), None)
+        if role is None:
+            continue
+        if role == "actor":
+            # --actor-id N when the launcher passes it; otherwise in order of pid.
+            parts = cmd.split()
+            index = parts[parts.index("--actor-id") + 1] if "--actor-id" in parts else str(counts.get(role, 0))
+            counts[role] = counts.get(role, 0) + 1
+            role = f"actor{index}"
+        out[role] = proc
+    return out
+
+
+def growth_mib_per_h(times_s: list[float], rss_mib: list[float]) -> float | None:
+    """Least-squares slope of RSS over time, in MiB/hour (None with fewer than 3 samples)."""
+    if len(times_s) < 3:
+        return None
+    t = np.asarray(times_s) / 3600.0
+    return float(np.polyfit(t, np.asarray(rss_mib), 1)[0])
+
+
+def soak(minutes: float, sample_every_s: float, warmup_minutes: float, preset: str, world: str,
+         extra: list[str], run_dir: Path) -> dict:
+    args = ["--preset", preset, "--world", world, "--frames", str(10**10), "--no-dashboard",
+            "--run-dir", str(run_dir), "--port-base", str(free_base_port()), *extra]
+    cmd = [sys.executable, "-c", "import sys; from higher_dist.cli import cluster_main as m; sys.exit(m())", *args]
+    log = open(run_dir.parent / f"{run_dir.name}-launcher.log", "wb")
+    launcher = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    samples: dict[str, list[tuple[float, float, int]]] = {}  # role -> [(t, rss MiB, pid)]
+    start = time.monotonic()
+    try:
+        root = psutil.Process(launcher.pid)
+        next_sample = start
+        while time.monotonic() - start < minutes * 60:
+            if launcher.poll() is not None:
+                raise RuntimeError(f"the cluster exited with code {launcher.returncode}; see {run_dir}/logs")
+            now = time.monotonic()
+            if now >= next_sample:
+                for role, proc in roles_of(root).items():
+                    try:
+                        rss = proc.memory_info().rss / 2**20
+                    except psutil.Error:
+                        continue
+                    samples.setdefault(role, []).append((now - start, rss, proc.pid))
+                next_sample += sample_every_s
+            time.sleep(min(1.0, max(0.0, next_sample - time.monotonic())))
+    finally:
+        if launcher.poll() is None:
+            launcher.send_signal(signal.SIGINT)
+            try:
+                launcher.wait(90)
+            except subprocess.TimeoutExpired:
+                launcher.kill()
+        log.close()
+    report: dict = {"minutes": minutes, "warmup_minutes": warmup_minutes, "preset": preset, "world": world,
+                    "target_mib_per_h": TARGET_MIB_PER_H, "roles": {}}
+    for role, rows in sorted(samples.items()):
+        after = [r for r in rows if r[0] >= warmup_minutes * 60]
+        slope = growth_mib_per_h([r[0] for r in after], [r[1] for r in after])
+        report["roles"][role] = {
+            "rss_start_mib": round(rows[0][1], 1), "rss_after_warmup_mib": round(after[0][1], 1) if after else None,
+            "rss_end_mib": round(rows[-1][1], 1), "samples": len(rows),
+            "growth_mib_per_h": None if slope is None else round(slope, 2),
+            "restarted": len({r[2] for r in rows}) > 1,
+            "verdict": "n/a" if slope is None else ("ok" if slope < TARGET_MIB_PER_H else "GROWS"),
+            "rss_mib": [round(r[1], 1) for r in rows],
+        }
+    records = read_metrics(run_dir / "metrics.jsonl")
+    if records:
+        last = records[-1]
+        keys = ("frames", "updates", "elapsed_s", "success_rate_eval_train", "success_rate_eval_heldout",
+                "success_rate_train", "relabel_dataset_size", "relabel_gate_open", "generator_val_accuracy",
+                "relabel_accuracy", "rejected_messages")
+        report["last_metrics"] = {k: last.get(k) for k in keys}
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="higher-bench soak", description=__doc__.splitlines()[0])
+    p.add_argument("--minutes", type=float, default=30.0)
+    p.add_argument("--sample-every", type=float, default=60.0, help="seconds between RSS samples")
+    p.add_argument("--warmup-minutes", type=float, default=None,
+                   help="samples before this are left out of the slope (default: a third of the run, at most 10)")
+    p.add_argument("--preset", default="higher")
+    p.add_argument("--world", default="paper")
+    p.add_argument("--run-dir", default=None, help="where the cluster's run goes (default: a temp folder)")
+    p.add_argument("--out", default=None, help="also write the report as JSON here")
+    args, extra = p.parse_known_args(argv)
+    if args.minutes <= 0 or args.sample_every <= 0:
+        p.error("--minutes and --sample-every must be > 0")
+    warmup = args.warmup_minutes if args.warmup_minutes is not None else min(10.0, args.minutes / 3)
+    run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="higher-soak-")) / "run"
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    report = soak(args.minutes, args.sample_every, warmup, args.preset, args.world, extra, run_dir)
+    print(f"soak: {args.preset} on the {args.world} world, {args.minutes:g} min, RSS every {args.sample_every:g} s, "
+          f"growth after {warmup:g} min of warm-up (target < {TARGET_MIB_PER_H:g} MiB/h)")
+    print(f"{'role':<12}{'start MiB':>10}{'warm MiB':>10}{'end MiB':>10}{'MiB/h':>9}  verdict")
+    for role, r in report["roles"].items():
+        print(f"{role:<12}{r['rss_start_mib']:>10}{str(r['rss_after_warmup_mib']):>10}{r['rss_end_mib']:>10}"
+              f"{str(r['growth_mib_per_h']):>9}  {r['verdict']}{' (restarted)' if r['restarted'] else ''}")
+    print("last metrics:", json.dumps(report.get("last_metrics")))
+    if args.out:
+        Path(args.out).write_text(json.dumps(report, indent=2))
+    return 0

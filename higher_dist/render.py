@@ -1,0 +1,285 @@
+"""`higher-render RUN_DIR --episodes N --out FILE.gif`: watch a run's agent.
+
+Greedy episodes of the run's latest learner checkpoint, drawn from the world's full state (not only the
+agent's 7x7 view): the room with its objects (colour and shade as colour, size as size, keys square
+and balls round), the agent as a triangle pointing where it faces, its view cone shaded, the mission,
+the step, the outcome, and for a wrong pick the instruction the run's relabeller gives the episode (the
+generator from relabeler.ckpt for HIGhER, whatever its gate says; the expert or noisy expert for HER).
+`--out FILE.png` draws a strip instead: a row per episode, a few frames each.
+
+The last frame of an episode shows the room before its final action (a pick moves nothing; the world
+resets the room as soon as an episode ends).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import textwrap
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from higher_dist.config import COLORS, SHADES, SIZES, TYPES, ConfigError, from_dict
+from higher_dist.learning.episode import Episode
+from higher_dist.world.spec import SUCCESS, TIMEOUT, WRONG_PICK
+from higher_dist.world.grid import DIRECTION_VECTORS, KIND_BALL, KIND_KEY, KIND_WALL, cell_attrs
+from higher_dist.world.language import decode, describe, parse
+
+BASE_RGB = {"red": (220, 40, 40), "green": (40, 170, 60), "blue": (50, 90, 230), "purple": (140, 60, 190),
+            "yellow": (235, 200, 30), "grey": (130, 130, 130)}
+SHADE_MIX = {"very_light": 0.6, "light": 0.3, "neutral": 0.0, "dark": -0.3, "very_dark": -0.55}  # + white, - black
+SIZE_SCALE = {"tiny": 0.35, "small": 0.5, "medium": 0.65, "large": 0.8, "giant": 0.95}
+PANEL_LINES = 6
+LINE_H = 13
+CHAR_W = 6  # Pillow's default bitmap font
+STEP_MS, END_MS = 140, 1400
+
+
+@dataclass
+class Snapshot:
+    room: np.ndarray  # (H, W, 4) view channels, wall ring included
+    pos: tuple[int, int]
+    direction: int
+    step: int
+
+
+@dataclass
+class Watched:
+    mission: str
+    frames: list[Snapshot]
+    episode: Episode | None = None
+    relabel: str = ""
+    goal_set: str = "train"
+
+
+def object_rgb(color: int, shade: int) -> tuple[int, int, int]:
+    base = np.array(BASE_RGB[COLORS[color]], float)
+    mix = SHADE_MIX[SHADES[shade]]
+    rgb = base + (255 - base) * mix if mix >= 0 else base * (1 + mix)
+    return tuple(int(v) for v in np.clip(rgb, 0, 255))
+
+
+def draw_frame(shot: Snapshot, view_size: int, lines: list[str], cell: int = 24):
+    from PIL import Image, ImageDraw
+
+    h, w = shot.room.shape[:2]
+    width = max(w * cell, 320)
+    img = Image.new("RGBA", (width, h * cell + PANEL_LINES * LINE_H + 6), (255, 255, 255, 255))
+    d = ImageDraw.Draw(img)
+    x0 = (width - w * cell) // 2
+    box = lambda r, c, m=0: (x0 + c * cell + m, r * cell + m, x0 + (c + 1) * cell - 1 - m, (r + 1) * cell - 1 - m)  # noqa: E731
+    for r in range(h):
+        for c in range(w):
+            kind = int(shot.room[r, c, 0])
+            d.rectangle(box(r, c), fill=(90, 90, 90) if kind == KIND_WALL else (236, 236, 236), outline=(210, 210, 210))
+            if kind in (KIND_KEY, KIND_BALL):
+                color, _, shade, size = (int(a) for a in cell_attrs(shot.room[r, c].view("<u4"))[0])
+                margin = int(cell * (1 - SIZE_SCALE[SIZES[size]]) / 2)
+                fill = object_rgb(color, shade)
+                if kind == KIND_BALL:
+                    d.ellipse(box(r, c, margin), fill=fill, outline=(0, 0, 0))
+                else:
+                    d.rectangle(box(r, c, margin), fill=fill, outline=(0, 0, 0))
+                    cx, cy = x0 + c * cell + cell // 2, r * cell + cell // 2
+                    d.rectangle((cx - 1, cy - 1, cx + 1, cy + 1), fill=(0, 0, 0))  # a keyhole: a key, not a box
+    # The view cone: the view_size x view_size cells ahead, the agent at the middle of its back row.
+    overlay = Image.new("RGBA", img.size, (0, 0, 0, 0))
+    od = ImageDraw.Draw(overlay)
+    ahead_vec = DIRECTION_VECTORS[shot.direction]
+    right_vec = DIRECTION_VECTORS[(shot.direction + 1) % 4]
+    for ahead in range(view_size):
+        for right in range(-(view_size // 2), view_size // 2 + 1):
+            r = shot.pos[0] + ahead * ahead_vec[0] + right * right_vec[0]
+            c = shot.pos[1] + ahead * ahead_vec[1] + right * right_vec[1]
+            if 0 <= r < h and 0 <= c < w:
+                od.rectangle(box(r, c), fill=(255, 210, 0, 60))
+    img = Image.alpha_composite(img, overlay)
+    d = ImageDraw.Draw(img)
+    r, c = shot.pos
+    cx, cy, s = x0 + c * cell + cell / 2, r * cell + cell / 2, cell * 0.38
+    dr, dc = ahead_vec
+    side_r, side_c = right_vec
+    tip = (cx + dc * s, cy + dr * s)
+    back_l = (cx - dc * s + side_c * s * 0.8, cy - dr * s + side_r * s * 0.8)
+    back_r = (cx - dc * s - side_c * s * 0.8, cy - dr * s - side_r * s * 0.8)
+    d.polygon([tip, back_l, back_r], fill=(20, 20, 20), outline=(255, 255, 255))  # black: objects may be red
+    wrapped = [part for line in lines for part in (textwrap.wrap(line, (width - 8) // CHAR_W) or [""])]
+    for i, line in enumerate(wrapped[:PANEL_LINES]):
+        d.text((4, h * cell + 3 + i * LINE_H), line, fill=(0, 0, 0))
+    return img.convert("RGB")
+
+
+def load_policy(run_dir: Path):
+    from higher_dist.learning.agent import AgentBuilder
+    from higher_dist.rundir import RunDir
+
+    try:
+        cfg = from_dict(json.loads((run_dir / "config.json").read_text()))
+    except (OSError, json.JSONDecodeError) as e:
+        raise ConfigError(f"{run_dir}: no readable config.json ({e})") from None
+    state = RunDir(run_dir).load_checkpoint("learner")
+    if state is None:
+        raise ConfigError(f"{run_dir}: no learner.ckpt to watch (has the run written a checkpoint yet?)")
+    policy = AgentBuilder(cfg).policy()
+    policy.net.load_state_dict(state["core"]["dqn"]["online"])
+    return cfg, policy, int(state["core"]["counters"]["frames"])
+
+
+def load_relabeller(cfg, run_dir: Path):
+    """(strategy, note): the run's relabel strategy, the generator loaded from relabeler.ckpt."""
+    from higher_dist.learning.agent import AgentBuilder
+    from higher_dist.rundir import RunDir
+
+    strategy = AgentBuilder(cfg).relabeler()
+    if strategy.name != "learned":
+        return strategy, ""
+    state = RunDir(run_dir).load_checkpoint("relabeler")
+    if state is None:
+        return strategy, "no relabeler.ckpt: untrained generator"
+    state.pop("pace", None)  # the relabeler service's own pacing, not the strategy's
+    strategy.load_state_dict(state)
+    gate = "open" if strategy.trainer.gate_open else "closed"
+    return strategy, f"gate {gate}, {len(strategy.trainer.dataset)} pairs"
+
+
+def relabel_text(strategy, note: str, ep: Episode, rng: np.random.Generator) -> str:
+    if ep.outcome != WRONG_PICK:
+        return ""
+    if strategy.name == "none":
+        return "relabel: none (this method does not relabel)"
+    if strategy.name == "learned":
+        tokens = strategy.trainer.generate(ep.frames[ep.length - 1][None])[0]
+        text = decode(tokens)
+        return f"generator: \"{text}\"" + ("" if parse(tokens) is not None else " (unparseable: dropped)") + f" [{note}]"
+    if strategy.name == "expert":
+        return f"expert: \"{describe(ep.picked, rng)}\""
+    copies = strategy.relabel([ep])
+    return f"noisy expert: \"{decode(copies[0].mission)}\"" if copies else ""
+
+
+def watch(cfg, policy, episodes: int, goal_set: str, seed: int) -> list[Watched]:
+    """One greedy episode per environment of a batch of `episodes`, with the full state at every step."""
+    from higher_dist.learning.acting import EpisodeCollector
+
+    collector = EpisodeCollector(cfg.world, episodes, cfg.network.frame_stack, seed, goal_set=goal_set)
+    world = collector.world
+    out = [Watched(decode(collector.mission[i]), [], goal_set=goal_set) for i in range(episodes)]
+    running = np.ones(episodes, bool)
+    step = 0
+    while running.any():
+        pos, dirs = world.agent_pos, world.agent_dir
+        for i in np.flatnonzero(running):
+            out[i].frames.append(Snapshot(world.room_cells(i).copy(), tuple(int(v) for v in pos[i]), int(dirs[i]), step))
+        obs, mission = collector.observation()
+        actions = policy(obs, mission).argmax(axis=1)
+        finished = collector.step(actions)
+        # A finished environment starts its next episode at once, at step 0; the collector lists the
+        # finished episodes in environment order.
+        for i, ep in zip(np.flatnonzero(world.steps == 0), finished):
+            if running[i]:
+                out[i].episode = ep
+                running[i] = False
+        step += 1
+    return out
+
+
+def outcome_text(ep: Episode) -> str:
+    if ep.outcome == SUCCESS:
+        return f"SUCCESS after {ep.length} steps"
+    if ep.outcome == TIMEOUT:
+        return f"TIME-OUT after {ep.length} steps"
+    color, kind, shade, size = (int(a) for a in ep.picked)
+    return f"WRONG PICK: a {SIZES[size]} {SHADES[shade]} {COLORS[color]} {TYPES[kind]}"
+
+
+def frames_of(watched: list[Watched], view_size: int, cell: int, label: str, first: int = 0, total: int = 0):
+    """[(image, duration_ms)] of every episode in turn (numbered from `first` of `total`)."""
+    out = []
+    for k, w in enumerate(watched, start=first):
+        for j, shot in enumerate(w.frames):
+            last = j == len(w.frames) - 1
+            goals = "held-out goal" if w.goal_set == "heldout" else "training goal"
+            lines = [f"{label} | episode {k + 1}/{total or len(watched)} ({goals}) | step {shot.step}",
+                     f"mission: {w.mission}",
+                     outcome_text(w.episode) if last and w.episode is not None else "", w.relabel if last else ""]
+            out.append((draw_frame(shot, view_size, lines, cell), END_MS if last else STEP_MS))
+    return out
+
+
+def save_gif(frames, path: Path) -> None:
+    images = [img.convert("P", palette=1, colors=64) for img, _ in frames]  # 1 = adaptive palette
+    images[0].save(path, save_all=True, append_images=images[1:], duration=[d for _, d in frames], loop=0,
+                   optimize=True)
+
+
+def save_strip(watched: list[Watched], view_size: int, cell: int, label: str, path: Path, per_row: int = 6) -> None:
+    from PIL import Image
+
+    rows = []
+    for k, w in enumerate(watched):
+        picks = sorted(set(np.linspace(0, len(w.frames) - 1, min(per_row, len(w.frames))).round().astype(int)))
+        single = frames_of([w], view_size, cell, label, first=k, total=len(watched))
+        rows.append([single[i][0] for i in picks])
+    width = max(sum(im.width for im in row) for row in rows)
+    height = sum(row[0].height for row in rows)
+    strip = Image.new("RGB", (width, height), (255, 255, 255))
+    y = 0
+    for row in rows:
+        x = 0
+        for im in row:
+            strip.paste(im, (x, y))
+            x += im.width
+        y += row[0].height
+    strip.save(path, optimize=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser("higher-render", description="Draw greedy episodes of a run's latest checkpoint.")
+    p.add_argument("run_dir", metavar="RUN_DIR")
+    p.add_argument("--episodes", type=int, default=4)
+    p.add_argument("--out", default="episodes.gif", help="FILE.gif (animation) or FILE.png (a strip of frames)")
+    p.add_argument("--goal-set", choices=("train", "heldout", "both"), default="train",
+                   help="goals of the episodes: training, held-out, or both (alternating)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the episodes' layouts")
+    p.add_argument("--cell", type=int, default=24, help="pixels per grid cell")
+    args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    out = Path(args.out)
+    if not 1 <= args.episodes <= 64:
+        return _die("--episodes: must be in [1, 64]")
+    if out.suffix.lower() not in (".gif", ".png"):
+        return _die(f"--out {out}: must end in .gif or .png")
+    try:
+        from PIL import Image  # noqa: F401
+    except ImportError:
+        return _die("Pillow is missing; pip install 'higher-dist[plot]'")
+    run_dir = Path(args.run_dir)
+    try:
+        cfg, policy, frames = load_policy(run_dir)
+        strategy, note = load_relabeller(cfg, run_dir)
+    except ConfigError as e:
+        return _die(str(e))
+    if args.goal_set == "both":
+        train = watch(cfg, policy, (args.episodes + 1) // 2, "train", args.seed)
+        heldout = watch(cfg, policy, args.episodes // 2, "heldout", args.seed)
+        watched = [w for pair in zip(train, heldout + [None]) for w in pair if w is not None][:args.episodes]
+    else:
+        watched = watch(cfg, policy, args.episodes, args.goal_set, args.seed)
+    rng = np.random.default_rng(args.seed)
+    for w in watched:
+        w.relabel = relabel_text(strategy, note, w.episode, rng)
+    label = f"{cfg.preset} @ {frames:,} frames"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".gif":
+        save_gif(frames_of(watched, cfg.world.view_size, args.cell, label), out)
+    else:
+        save_strip(watched, cfg.world.view_size, args.cell, label, out)
+    outcomes = [outcome_text(w.episode).split(" ")[0] for w in watched]
+    print(f"{out}: {len(watched)} episodes of {run_dir} ({label}): {', '.join(outcomes)}")
+    return 0
+
+
+def _die(message: str) -> int:
+    print(f"higher-render: error: {message}", file=sys.stderr)
+    return 2

@@ -1,0 +1,161 @@
+"""`higher-reproduce [EXPERIMENT ...]`: run the paper's experiments as one plan, then draw its figures and
+write results.md. `make reproduce -- --dry-run` prints the plan and its estimated cost without running."""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+from pathlib import Path
+
+from higher_dist.config import WORLDS, ConfigError
+from higher_dist.reproduce import plan as plan_mod
+from higher_dist.reproduce.status import estimate, human_seconds
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(float(text)) if "e" in text.lower() else int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        "higher-reproduce", description="Reproduce the paper's experiments: a resumable plan of runs, "
+        "its figures and results.md.",
+        epilog="Experiments: main (DQN, DQN+HER, DQN+HIGhER, DQN+reward), noise (DQN+HER with attribute noise "
+               "p in 0, 0.2, 0.5, 0.8, against DQN), trigger (HIGhER's generator switched on after 0, 1000, 2000 "
+               "pairs), generator (exact match vs 1k..5k expert pairs). Rerun the same command to resume.")
+    p.add_argument("experiments", nargs="*", metavar="EXPERIMENT", help=f"any of {', '.join(plan_mod.EXPERIMENTS)} "
+                   "(default: all)")
+    p.add_argument("--seeds", type=_positive, default=plan_mod.PAPER_SEEDS, help="seeds per method (paper: 5)")
+    p.add_argument("--frames", type=_positive, default=plan_mod.PAPER_FRAMES,
+                   help="env frames per run (paper: 5000000; 1e5 style accepted)")
+    p.add_argument("--profile", choices=plan_mod.PROFILES, default="paper",
+                   help="paper: the paper's settings; default: this project's defaults")
+    p.add_argument("--parallel", type=_positive, default=None,
+                   help=f"runs at once (default fits this machine: {plan_mod.default_parallel()})")
+    p.add_argument("--out", default="runs/reproduce", help="the plan's folder (plan.json, runs/, figures/, results.md)")
+    p.add_argument("--world", choices=WORLDS, default="paper", help="small: a quick world for smoke tests")
+    p.add_argument("--methods", default=None, metavar="LIST",
+                   help="only these variants or presets, comma-separated (e.g. dqn,her)")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="a config override for every run")
+    p.add_argument("--actors", type=_positive, default=None, help="actors per run (default fits the machine)")
+    p.add_argument("--generator-steps", type=_positive, default=plan_mod.GENERATOR_STEPS,
+                   help="Adam steps per generator run")
+    p.add_argument("--dry-run", action="store_true", help="print the plan and its estimated cost; run nothing")
+    p.add_argument("--report", action="store_true", help="only draw the figures and write results.md from --out")
+    p.add_argument("--no-report", action="store_true", help="do not draw figures and results.md at the end")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        return _main(args, sys.argv[1:] if argv is None else argv)
+    except ConfigError as e:
+        print(f"higher-reproduce: error: {e}", file=sys.stderr)
+        return 2
+
+
+def _main(args: argparse.Namespace, argv: list[str]) -> int:
+    out = Path(args.out)
+    if args.report:
+        return report(out)
+    for item in args.set:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected FIELD=VALUE")
+    parallel = args.parallel or plan_mod.default_parallel()
+    plan = plan_mod.build_plan(
+        out, args.experiments or list(plan_mod.EXPERIMENTS), args.seeds, args.frames, args.world, args.profile,
+        parallel, methods=[m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None,
+        sets=args.set, actors=args.actors, generator_steps=args.generator_steps,
+        command=["higher-reproduce", *argv])
+    configs = plan_mod.check_configs(plan)
+    spis = {name: cfg.replay.samples_per_insert for name, cfg in configs.items()}
+    if args.dry_run:
+        print_plan(plan, spis, parallel)
+        return 0
+    _lock(out)
+    recorded = plan_mod.merge_and_write(plan)
+    from higher_dist.reproduce.executor import Executor
+    from higher_dist.reproduce.view import make_view
+
+    _, _, rates = estimate(plan, plan.runs, spis, parallel)
+    view = make_view()
+    view.event(f"plan written to {out / 'plan.json'}: {len(plan.runs)} runs, {parallel} at once")
+    code = Executor(recorded, plan.runs, parallel, view, rates.fps).run()
+    if code >= 128:
+        view.event(f"stopped; rerun the same command to resume ({' '.join(['higher-reproduce', *argv])})")
+        return code
+    if not args.no_report:
+        report(out)
+    return code
+
+
+def _lock(out: Path) -> None:
+    """One higher-reproduce per folder: a second one would start the same runs twice."""
+    import psutil
+
+    lock = out / "reproduce.pid"
+    try:
+        pid = int(lock.read_text())
+        running = pid != os.getpid() and "reproduce" in " ".join(psutil.Process(pid).cmdline())
+    except (OSError, ValueError, psutil.Error):
+        running = False  # no lock, or its process is gone: the folder is free
+    if running:
+        raise ConfigError(f"--out {out}: higher-reproduce (pid {pid}) is already running this plan")
+    out.mkdir(parents=True, exist_ok=True)
+    lock.write_text(str(os.getpid()))
+
+
+def print_plan(plan: plan_mod.Plan, spis: dict[str, float], parallel: int) -> None:
+    rows, wall, rates = estimate(plan, plan.runs, spis, parallel)
+    s = plan.settings
+    print(f"higher-reproduce plan for {plan.out}: experiments {', '.join(plan.experiments)}; world {s['world']}; "
+          f"profile {s['profile']} (passed as: {s['profile_mode']}); {s['seeds']} seed(s); {s['frames']:,} frames "
+          f"per run (the paper: {plan_mod.PAPER_SEEDS} seeds x {plan_mod.PAPER_FRAMES:,} frames)")
+    profile = {}
+    for run in plan.runs:
+        flags = plan_mod.profile_flags(s["profile"], "generator" if run.kind == "generator" else run.preset,
+                                       s["profile_mode"])
+        profile.setdefault(" ".join(flags) or "(none)", []).append(run.variant)
+    for flags, variants in profile.items():
+        print(f"  profile flags of {', '.join(dict.fromkeys(variants))}: {flags}")
+    print(f"{'run':<24}{'kind':<10}{'experiments':<14}{'budget':>12}{'state':>11}{'estimate':>10}  run's own flags")
+    for row in rows:
+        run = row["run"]
+        budget = f"{run.pairs} pairs" if run.kind == "generator" else f"{run.frames:,}"
+        own = plan_mod.profile_flags(s["profile"], "generator" if run.kind == "generator" else run.preset,
+                                     s["profile_mode"])
+        flags = " ".join(run.flags[len(own):]) + (f" --actors {run.actors}" if run.kind == "cluster"
+                                                  else f" --steps {run.steps}")
+        print(f"{run.name:<24}{run.kind:<10}{','.join(run.experiments):<14}{budget:>12}{row['state']:>11}"
+              f"{human_seconds(row['seconds']):>10}  {flags.strip()}")
+    cluster = [r for r in rows if r["run"].kind == "cluster"]
+    left = sum(r["left"] for r in cluster)
+    print(f"\n{len(rows)} runs ({len(cluster)} cluster runs, {len(rows) - len(cluster)} generator runs); "
+          f"{left:,} env frames left to run")
+    print(f"estimated cost on this machine ({os.cpu_count()} cores, {platform.machine()}): "
+          f"{human_seconds(wall)} wall-clock at --parallel {parallel}")
+    print(f"  frame rate used: {rates.fps:.0f} frames/s per run at {rates.spi:g} samples per insert, {rates.source}")
+    print(f"  generator runs: {rates.gen_source}")
+    print("nothing was run (--dry-run); without it the plan is written to "
+          f"{plan.out / 'plan.json'} and run, finished runs skipped and interrupted ones resumed")
+
+
+def report(out: Path) -> int:
+    from higher_dist.reproduce.claims import write_results
+    from higher_dist.reproduce.figures import draw_all
+
+    recorded = plan_mod.read_plan(out)
+    figures = draw_all(recorded)
+    path = write_results(recorded, figures)
+    for f in figures.values():
+        print(f)
+    print(path)
+    return 0

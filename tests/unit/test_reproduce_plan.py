@@ -1,0 +1,210 @@
+"""The reproduce plan: which runs, shared between experiments, with which flags; plan.json merging; run
+states on disk; the cost estimate's frame rate; metrics trimmed to a checkpoint before a resume."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from higher_dist.config import ConfigError
+from higher_dist.reproduce import plan as plan_mod
+from higher_dist.reproduce.claims import random_success
+from higher_dist.reproduce.executor import trim_metrics_to_checkpoint
+from higher_dist.reproduce.status import estimate, measured_fps, run_state
+from higher_dist.rundir import RunDir
+
+
+def build(tmp_path, experiments=("main", "noise"), seeds=2, **kw):
+    kw.setdefault("frames", 100_000)
+    return plan_mod.build_plan(tmp_path / "p", list(experiments), seeds, world="small", profile=kw.pop("profile", "paper"),
+                               parallel=1, **kw)
+
+
+def test_experiments_share_runs_and_run_seed_major(tmp_path):
+    plan = build(tmp_path)
+    names = [r.name for r in plan.runs]
+    assert len(names) == len(set(names)) == 2 * 7  # main 4 + noise 3 new per seed (her and dqn shared)
+    her = next(r for r in plan.runs if r.name == "her-s0")
+    assert her.experiments == ("main", "noise")
+    assert names.index("noisy-her-p0.8-s0") < names.index("dqn-s1")  # every first seed before any second
+    assert plan.experiments["noise"][0] == "her-s0" and "dqn-s0" in plan.experiments["noise"]
+    noisy = next(r for r in plan.runs if r.name == "noisy-her-p0.5-s1")
+    assert noisy.preset == "noisy-her" and "relabel.noise_p=0.5" in noisy.flags and noisy.seed == 1
+
+
+def test_methods_filter_and_bad_names_are_refused(tmp_path):
+    plan = build(tmp_path, ("main",), seeds=1, methods=["dqn", "her"])
+    assert [r.name for r in plan.runs] == ["dqn-s0", "her-s0"]
+    with pytest.raises(ConfigError, match="selects no run"):
+        build(tmp_path, ("main",), methods=["nope"])
+    with pytest.raises(ConfigError, match="unknown"):
+        build(tmp_path, ("mian",))
+
+
+def test_profile_is_passed_the_way_this_checkout_takes_it(tmp_path):
+    assert plan_mod.profile_flags("paper", "her", "flag") == ("--profile", "paper")
+    assert plan_mod.profile_flags("paper", "her", "field") == ("--set", "profile=paper")
+    assert plan_mod.profile_flags("default", "higher", "sets") == ()
+    assert "exploration.decay_frames=400000" in plan_mod.profile_flags("paper", "higher", "sets")
+    with pytest.raises(ConfigError, match="--profile"):
+        plan_mod.profile_flags("fast", "her", "sets")
+    plan = build(tmp_path, ("main", "trigger"), seeds=1)
+    configs = plan_mod.check_configs(plan)
+    her, trigger0 = configs["her-s0"], configs["higher-trigger0-s0"]
+    if plan.settings["profile_mode"] == "sets":
+        assert her.exploration.kind == "linear" and her.exploration.decay_frames == 100_000
+    else:
+        assert her.profile == "paper"
+    assert trigger0.generator.n_min == 0 and trigger0.generator.min_accuracy == 0  # the run's own flags win
+    assert configs["dqn-s0"].eval.every_frames == 10_000  # 100k frames: ten evaluations (the small world's own)
+    short = plan_mod.check_configs(build(tmp_path, ("main",), seeds=1, frames=6000))
+    assert short["dqn-s0"].eval.every_frames == 600
+
+
+def test_bad_overrides_are_refused_before_anything_runs(tmp_path):
+    plan = build(tmp_path, ("main",), seeds=1, sets=["dqn.lr=fast"])
+    with pytest.raises(ConfigError, match="dqn.lr"):
+        plan_mod.check_configs(plan)
+
+
+def test_plan_json_keeps_earlier_runs_and_refuses_changed_ones(tmp_path):
+    first = build(tmp_path, ("main",), seeds=1, methods=["her"])
+    plan_mod.merge_and_write(first)
+    longer = build(tmp_path, ("noise",), seeds=1, frames=200_000, actors=3)
+    recorded = plan_mod.merge_and_write(longer)
+    data = json.loads((tmp_path / "p" / "plan.json").read_text())
+    assert data["runs"]["her-s0"]["frames"] == 200_000  # a longer budget extends the run
+    assert data["runs"]["her-s0"]["actors"] == first.runs[0].actors  # its exploration ladder stays
+    assert data["runs"]["her-s0"]["experiments"] == ["main", "noise"]
+    assert {r.name for r in recorded.runs} >= {"her-s0", "noisy-her-p0.2-s0", "dqn-s0"}
+    changed = build(tmp_path, ("main",), seeds=1, methods=["her"], sets=["dqn.lr=0.01"])
+    with pytest.raises(ConfigError, match="her-s0 was planned there with other settings"):
+        plan_mod.merge_and_write(changed)
+    assert plan_mod.read_plan(tmp_path / "p").experiments["noise"][0] == "her-s0"
+
+
+def _metrics(path, rows):
+    path.mkdir(parents=True, exist_ok=True)
+    (path / "metrics.jsonl").write_text("".join(json.dumps({"time": t, "frames": f}) + "\n" for t, f in rows))
+
+
+def test_run_states_and_measured_frame_rate(tmp_path):
+    plan = build(tmp_path, ("main",), seeds=1, methods=["dqn"], frames=1000)
+    run = plan.runs[0]
+    path = plan.path(run)
+    assert run_state(run, path) == "pending"
+    path.mkdir(parents=True)
+    assert run_state(run, path) == "stale"
+    RunDir(path).save_checkpoint("learner", {"core": {"counters": {"frames": 400}}})
+    _metrics(path, [(0, 0), (5, 200), (10, 400), (100, 400), (105, 600)])  # a stop between 10 s and 100 s
+    assert run_state(run, path) == "resumable"
+    assert measured_fps(path) == pytest.approx(600 / 15)  # the 90 s gap is not running time
+    rows, wall, rates = estimate(plan, plan.runs, {}, parallel=1)
+    assert rates.source.startswith("measured: median of 1 run(s)") and rates.fps == pytest.approx(40)
+    assert rows[0]["left"] == 400 and wall == pytest.approx(400 / 40)
+    assert trim_metrics_to_checkpoint(path) == 400
+    assert [r["frames"] for r in map(json.loads, (path / "metrics.jsonl").read_text().splitlines())] == [0, 200, 400, 400]
+    _metrics(path, [(0, 0), (5, 1000)])
+    assert run_state(run, path) == "done"
+
+
+def test_fallback_rate_names_its_source(tmp_path):
+    plan = build(tmp_path, ("main",), seeds=1, methods=["dqn"])
+    _, wall, rates = estimate(plan, plan.runs, {"dqn-s0": 16.0}, parallel=1, bench_dir=tmp_path / "none")
+    assert "docs/benchmarks.md" in rates.source
+    assert wall == pytest.approx(100_000 / (rates.fps / 2))  # twice the samples per insert: half the rate
+
+
+def test_random_policy_success_is_measured_one_episode_per_env():
+    rate = random_success("small", envs=500)
+    assert 0.02 < rate < 0.5
+
+
+def test_higher_plot_on_a_plan_folder_draws_the_plans_figures_and_table(tmp_path):
+    from higher_dist.plot import main as plot_main
+
+    plan = build(tmp_path, ("main",), seeds=2, methods=["dqn"], frames=1000)
+    plan_mod.merge_and_write(plan)
+    for seed, level in ((0, 0.2), (1, 0.4)):
+        path = plan.path(plan.runs[seed])
+        path.mkdir(parents=True)
+        (path / "config.json").write_text(json.dumps({"preset": "dqn", "seed": seed, "world": {"name": "small"}}))
+        rows = [{"time": t, "frames": 100 * t, "success_rate_train": 0.1, "success_rate_eval_train": level * t / 10,
+                 "success_rate_eval_heldout": level / 2, "replay_success": 10, "replay_timeout": 90 + t}
+                for t in range(1, 11)]
+        (path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert plot_main([str(plan.out)]) == 0
+    assert (plan.out / "figures" / "success_train.png").stat().st_size > 5_000
+    results = (plan.out / "results.md").read_text()
+    # The latest evaluations are 0.2 and 0.4: mean 30.0%, std 10.0 over the two seeds.
+    assert "| DQN | 30.0% +- 10.0 (2 seeds, 1,000 frames) | 15.0% +- 5.0 (2 seeds, 1,000 frames) |" in results
+
+
+def test_a_generator_run_writes_its_exact_match_and_the_figure_draws_it(tmp_path):
+    from higher_dist.reproduce import gen_task
+    from higher_dist.reproduce.figures import draw_all
+
+    plan = build(tmp_path, ("generator",), seeds=1, methods=["gen-pairs1000"], generator_steps=20)
+    plan_mod.merge_and_write(plan)
+    run = plan.runs[0]
+    assert run_state(run, plan.path(run)) == "pending"
+    # The executor's argv, run in this process: 200 pairs instead of 1000 keep it quick.
+    assert gen_task.main(["--pairs", "200", "--steps", str(run.steps), "--seed", "0", "--world", "small",
+                          "--eval-pairs", "64", "--out", str(plan.path(run)), "--", *run.flags]) == 0
+    result = json.loads((plan.path(run) / "result.json").read_text())
+    assert result["pairs"] == 200 and 0.0 <= result["seen_exact_match"] <= 1.0 and 0.0 <= result["unseen_exact_match"] <= 1.0
+    assert run_state(run, plan.path(run)) == "done"
+    assert draw_all(plan_mod.read_plan(plan.out))["generator_pairs"].stat().st_size > 5_000
+
+
+def test_a_second_reproduce_on_the_same_folder_is_refused(tmp_path):
+    import subprocess
+    import sys
+
+    from higher_dist.reproduce.cli import _lock
+
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)  # higher-reproduce stand-in"])
+    try:
+        (tmp_path / "reproduce.pid").write_text(str(other.pid))
+        with pytest.raises(ConfigError, match=f"pid {other.pid}"):
+            _lock(tmp_path)
+    finally:
+        other.kill()
+        other.wait()
+    _lock(tmp_path)  # its process is gone: the folder is free again, and now ours
+    assert (tmp_path / "reproduce.pid").read_text() == str(__import__("os").getpid())
+
+
+def _write_run(plan, name, final, frames=1000, generator=None):
+    run = next(r for r in plan.runs if r.name == name)
+    path = plan.path(run)
+    path.mkdir(parents=True)
+    (path / "config.json").write_text(json.dumps({"preset": run.preset, "seed": run.seed, "world": {"name": "small"}}))
+    rows = [{"time": t, "frames": frames * t // 10, "success_rate_eval_train": final * t / 10,
+             "success_rate_eval_heldout": final / 2, "replay_success": 5, "replay_timeout": 50,
+             **({"generator_val_accuracy": generator * t / 10} if generator is not None else {})} for t in range(1, 11)]
+    (path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def test_noise_and_trigger_figures_and_their_verdicts(tmp_path):
+    from higher_dist.reproduce.claims import claims
+    from higher_dist.reproduce.figures import draw_all
+
+    plan = plan_mod.merge_and_write(build(tmp_path, ("main", "noise", "trigger"), seeds=1, frames=1000))
+    finals = {"dqn-s0": 0.05, "her-s0": 0.5, "reward-s0": 0.42, "noisy-her-p0.2-s0": 0.45,
+              "noisy-her-p0.5-s0": 0.3, "noisy-her-p0.8-s0": 0.2, "higher-trigger0-s0": 0.4,
+              "higher-trigger1000-s0": 0.3, "higher-trigger2000-s0": 0.1}
+    for name, final in finals.items():
+        _write_run(plan, name, final)
+    _write_run(plan, "higher-s0", 0.45, generator=0.8)
+    figures = draw_all(plan)
+    assert {"success_train", "noise", "trigger", "generator_accuracy", "replay_composition"} <= set(figures)
+    rows = {row["claim"]: row for row in claims(plan)}
+    noise = rows["HER keeps 80% of its performance at 50% noise"]
+    assert noise["verdict"] == "does not hold" and "ratio 0.60" in noise["why"]  # 0.3 / 0.5
+    assert rows["HER with 80% noise still beats DQN"]["verdict"] == "holds"
+    trigger = rows["The trigger point (0, 1000, 2000 pairs) makes no difference"]
+    assert trigger["verdict"] == "does not hold" and "spread 30.0 points" in trigger["why"]
+    assert rows["DQN+HIGhER nearly matches DQN+HER"]["verdict"] == "holds"  # 45% against 50%
+    assert rows["HIGhER's generator reaches 78% at 5M frames"]["verdict"] == "holds"
+    assert "measured at 1,000 frames" in rows["DQN+reward reaches about 40%"]["why"]
