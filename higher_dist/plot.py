@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from higher_dist import metrics as m
+
 GRID_POINTS = 200
 REPLAY_KEYS = (("replay_success", "success", "tab:green"), ("replay_wrong_pick", "wrong pick", "tab:red"),
                ("replay_timeout", "time-out", "tab:olive"), ("replay_relabelled", "relabelled", "tab:cyan"))
@@ -47,7 +49,7 @@ class Run:
 
     def series(self, key: str) -> tuple[np.ndarray, np.ndarray]:
         """(frames, values) for the records where both are numbers, sorted by frames."""
-        pts = [(r.get("frames"), r.get(key)) for r in self.records]
+        pts = [(r.get(m.FRAMES), r.get(key)) for r in self.records]
         pts = [(float(f), float(v)) for f, v in pts if _num(f) and _num(v)]
         pts.sort()
         if not pts:
@@ -78,8 +80,8 @@ def load_run(path: Path) -> Run:
     except (OSError, json.JSONDecodeError):
         pass  # an interrupted run may lack it; the records carry preset and world too
     world = config.get("world")
-    world_name = world.get("name") if isinstance(world, dict) else records[-1].get("world")
-    preset = config.get("preset") or records[-1].get("preset") or path.name
+    world_name = world.get("name") if isinstance(world, dict) else records[-1].get(m.WORLD)
+    preset = config.get("preset") or records[-1].get(m.PRESET) or path.name
     return Run(path, str(preset), config.get("seed"), str(world_name or "-"), records)
 
 
@@ -106,7 +108,7 @@ def _pyplot():
 
 def success_key(run: Run) -> str:
     """Greedy evaluation on training goals when the run has it; otherwise the training success."""
-    return "success_rate_eval_train" if run.has("success_rate_eval_train") else "success_rate_train"
+    return m.SUCCESS_EVAL_TRAIN if run.has(m.SUCCESS_EVAL_TRAIN) else m.SUCCESS_TRAIN
 
 
 def mean_band(curves: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
@@ -131,7 +133,7 @@ def plot_success(runs: list[Run], key_for, title: str, out: Path) -> Path:
     for i, (preset, group) in enumerate(sorted(by_preset.items())):
         colour = f"C{i % 10}"
         curves = [run.series(key_for(run)) for run in group]
-        if any(key_for(run) == "success_rate_train" for run in group):
+        if any(key_for(run) == m.SUCCESS_TRAIN for run in group):
             preset = f"{preset} (exploring)"  # no greedy evaluation in these runs: say what is drawn
         band = mean_band(curves) if len(group) > 1 else None
         if band is not None:
@@ -153,10 +155,10 @@ def plot_generator(runs: list[Run], out: Path) -> Path:
     fig, ax = plt.subplots(figsize=(8, 5))
     for i, run in enumerate(runs):
         colour = f"C{i % 10}"
-        x, y = run.series("generator_val_accuracy")
+        x, y = run.series(m.GENERATOR_VAL_ACCURACY)
         if len(x):
             ax.plot(x, y, color=colour, label=f"{run.label}: validation accuracy")
-        x, y = run.series("relabel_accuracy")
+        x, y = run.series(m.RELABEL_ACCURACY)
         if len(x):
             ax.plot(x, y, color=colour, linestyle="--", label=f"{run.label}: relabel accuracy")
     ax.set(xlabel="environment frames", ylabel="exact-match accuracy", ylim=(-0.02, 1.02),
@@ -169,14 +171,14 @@ def plot_generator(runs: list[Run], out: Path) -> Path:
 def replay_fractions(run: Run) -> tuple[np.ndarray, np.ndarray]:
     """(frames, fractions[4, T]) of the replay's origins, for records that report them."""
     frames, rows = [], []
-    for r in sorted((r for r in run.records if _num(r.get("frames"))), key=lambda r: r["frames"]):
+    for r in sorted((r for r in run.records if _num(r.get(m.FRAMES))), key=lambda r: r[m.FRAMES]):
         counts = [r.get(k) for k, _, _ in REPLAY_KEYS]
         if not any(_num(c) for c in counts):
             continue
         counts = [float(c) if _num(c) and c > 0 else 0.0 for c in counts]
         total = sum(counts)
         if total > 0:
-            frames.append(float(r["frames"]))
+            frames.append(float(r[m.FRAMES]))
             rows.append([c / total for c in counts])
     if not rows:
         return np.empty(0), np.empty((len(REPLAY_KEYS), 0))
@@ -244,15 +246,15 @@ def main(argv: list[str]) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    greedy = all(success_key(run) == "success_rate_eval_train" for run in runs)
+    greedy = all(success_key(run) == m.SUCCESS_EVAL_TRAIN for run in runs)
     title = ("Greedy success on training goals" if greedy
              else "Success on training goals (greedy where evaluated, else while exploring)")
     written = [plot_success(runs, success_key, title, out / "success_rate.png")]
-    heldout = [run for run in runs if run.has("success_rate_eval_heldout")]
+    heldout = [run for run in runs if run.has(m.SUCCESS_EVAL_HELDOUT)]
     if heldout:
         written.append(plot_success(heldout, lambda run: "success_rate_eval_heldout",
                                     "Greedy success on held-out goals", out / "success_rate_heldout.png"))
-    generator_runs = [run for run in runs if run.has("generator_val_accuracy") or run.has("relabel_accuracy")]
+    generator_runs = [run for run in runs if run.has(m.GENERATOR_VAL_ACCURACY) or run.has(m.RELABEL_ACCURACY)]
     if generator_runs:
         written.append(plot_generator(generator_runs, out / "generator_accuracy.png"))
     else:

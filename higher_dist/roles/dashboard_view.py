@@ -129,9 +129,9 @@ class DashboardState:
         self.records_seen += 1
         self.last_update = time.monotonic() if now is None else now
         # Append even when missing so the sparklines keep time-alignment between the two series.
-        self.success_history.append(record.get("success_rate_eval_train"))
-        self.exploring_history.append(record.get("success_rate_train"))
-        self.generator_history.append(record.get("generator_val_accuracy"))
+        self.success_history.append(record.get(m.SUCCESS_EVAL_TRAIN))
+        self.exploring_history.append(record.get(m.SUCCESS_TRAIN))
+        self.generator_history.append(record.get(m.GENERATOR_VAL_ACCURACY))
 
     def note_garbage(self) -> None:
         self.garbage_frames += 1
@@ -162,7 +162,7 @@ def cluster_panel(record: dict[str, Any]) -> Panel:
                           ("state", "left"), ("heartbeat", "right"), ("frames/s", "right"),
                           ("weights lag", "right"), ("restarts", "right"), ("rejected", "right")):
         table.add_column(name, justify=justify, no_wrap=True)
-    roles = record.get("roles")
+    roles = record.get(m.ROLES)
     roles = [r for r in roles if isinstance(r, dict)] if isinstance(roles, list) else []
     roles.sort(key=lambda r: (ROLE_ORDER.get(r.get("role"), 9), r.get("id") if _is_number(r.get("id")) else 0))
     for r in roles:
@@ -174,7 +174,7 @@ def cluster_panel(record: dict[str, Any]) -> Panel:
         table.add_row(
             str(r.get("role", MISSING)), fmt_int(r.get("id")), str(r.get("host") or MISSING),
             fmt_int(r.get("pid")).replace(",", ""), Text(label, style=STATE_STYLE.get(state, "")),
-            f"{age:.1f} s" if _is_number(age) else MISSING, fmt_rate(r.get("frames_per_s")),
+            f"{age:.1f} s" if _is_number(age) else MISSING, fmt_rate(r.get(m.FRAMES_PER_S)),
             fmt_int(r.get("weights_lag")),
             Text(fmt_int(restarts), style="yellow" if _is_number(restarts) and restarts > 0 else ""),
             fmt_int(r.get("rejected")),
@@ -209,7 +209,7 @@ def reject_summary(record: dict[str, Any], top: int = 6) -> str:
 
 def frames_progress(record: dict[str, Any]) -> tuple[RenderableType, str]:
     """(a bar of frames / budget with the percent done, the ETA from the current frame rate)."""
-    frames, budget, fps = record.get("frames"), record.get("frames_budget"), record.get("frames_per_s")
+    frames, budget, fps = record.get(m.FRAMES), record.get(m.FRAMES_BUDGET), record.get(m.FRAMES_PER_S)
     if not (_is_number(frames) and _is_number(budget) and budget > 0):
         return Text(MISSING), MISSING
     if frames >= budget:
@@ -230,18 +230,18 @@ def learning_panel(record: dict[str, Any]) -> Panel:
     t.add_row("frames", f"{fmt_int(record.get('frames'))} / {fmt_int(record.get('frames_budget'))}")
     t.add_row("", bar)
     t.add_row("ETA", eta)
-    t.add_row("frames/s", fmt_rate(record.get("frames_per_s")))
+    t.add_row("frames/s", fmt_rate(record.get(m.FRAMES_PER_S)))
     t.add_row("updates", f"{fmt_int(record.get('updates'))}  ({fmt_rate(record.get('updates_per_s'))})")
-    t.add_row("episodes", fmt_int(record.get("episodes")))
-    t.add_row("replay ratio", fmt_float(record.get("replay_ratio"), 2))
-    t.add_row("loss", fmt_float(record.get("loss"), 4))
-    t.add_row("mean Q", fmt_float(record.get("q_mean"), 3))
-    t.add_row("epsilon", fmt_float(record.get("epsilon_mean"), 3))
+    t.add_row("episodes", fmt_int(record.get(m.EPISODES)))
+    t.add_row("replay ratio", fmt_float(record.get(m.REPLAY_RATIO), 2))
+    t.add_row("loss", fmt_float(record.get(m.LOSS), 4))
+    t.add_row("mean Q", fmt_float(record.get(m.Q_MEAN), 3))
+    t.add_row("epsilon", fmt_float(record.get(m.EPSILON_MEAN), 3))
     # Greedy evaluation is the headline; the training success mixes slots exploring at up to the
     # largest epsilon of the ladder, so it is labelled as such.
     t.add_row("greedy, train", fmt_eval(record, "success_rate_eval_train"))
     t.add_row("greedy, held-out", fmt_eval(record, "success_rate_eval_heldout"))
-    t.add_row("exploring, train", fmt_pct(record.get("success_rate_train")))
+    t.add_row("exploring, train", fmt_pct(record.get(m.SUCCESS_TRAIN)))
     return Panel(t, title="Learning", title_align="left")
 
 
@@ -254,16 +254,16 @@ def fmt_eval(record: dict[str, Any], key: str) -> str:
 
 
 def relabeler_panel(record: dict[str, Any]) -> Panel:
-    gate = record.get("relabel_gate_open")
+    gate = record.get(m.RELABEL_GATE_OPEN)
     gate_text = (Text("open", style="bold green") if gate is True
                  else Text("closed", style="yellow") if gate is False else Text(MISSING))
     t = _kv_table()
-    t.add_row("dataset size", fmt_int(record.get("relabel_dataset_size")))
-    t.add_row("val. accuracy", fmt_pct(record.get("generator_val_accuracy")))
+    t.add_row("dataset size", fmt_int(record.get(m.RELABEL_DATASET_SIZE)))
+    t.add_row("val. accuracy", fmt_pct(record.get(m.GENERATOR_VAL_ACCURACY)))
     t.add_row("gate", gate_text)
-    t.add_row("relabels/s", fmt_rate(record.get("relabels_per_s")))
-    t.add_row("relabelled eps", fmt_int(record.get("relabelled_episodes")))
-    t.add_row("relabel accuracy", fmt_pct(record.get("relabel_accuracy")))
+    t.add_row("relabels/s", fmt_rate(record.get(m.RELABELS_PER_S)))
+    t.add_row("relabelled eps", fmt_int(record.get(m.RELABELLED_EPISODES)))
+    t.add_row("relabel accuracy", fmt_pct(record.get(m.RELABEL_ACCURACY)))
     return Panel(t, title="Relabeler", title_align="left")
 
 
@@ -273,7 +273,7 @@ def replay_panel(record: dict[str, Any], bar_width: int = 30) -> Panel:
     total = sum(known)
     t = _kv_table()
     t.add_column(justify="right", no_wrap=True)
-    t.add_row("size", fmt_int(record.get("replay_size")), "")
+    t.add_row("size", fmt_int(record.get(m.REPLAY_SIZE)), "")
     for label, count, colour in counts:
         share = count / total if _is_number(count) and total > 0 else None
         t.add_row(Text(label, style=colour), fmt_int(count), fmt_pct(share))
