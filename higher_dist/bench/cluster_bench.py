@@ -35,6 +35,16 @@ def _role_of(proc: psutil.Process) -> str | None:
     return next((role for marker, role in ROLE_MARKERS.items() if marker in cmd), None)
 
 
+def stop_group(proc: subprocess.Popen, grace_s: float = 60.0) -> None:
+    """SIGTERM the cluster's process group (a clean stop: final checkpoints), SIGKILL after `grace_s`."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+
+
 def _wait_for(path: Path, predicate, timeout: float, proc: subprocess.Popen) -> dict:
     deadline = time.time() + timeout
     while time.time() < deadline:
@@ -80,12 +90,7 @@ def measure_cluster(seconds: float, preset: str, world: str, actors: int | None,
         lags = [r["weights_lag_mean"] for r in records
                 if r["time"] > start["time"] and r.get("weights_lag_mean") is not None]
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+        stop_group(proc)
     dt = end["time"] - start["time"]
     frames = end["frames"] - start["frames"]
     updates = end["updates"] - start["updates"]

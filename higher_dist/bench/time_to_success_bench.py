@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -23,6 +22,7 @@ import time
 from pathlib import Path
 
 from higher_dist import metrics as names
+from higher_dist.bench.cluster_bench import stop_group
 from higher_dist.launch.topology import free_base_port
 from higher_dist.rundir import read_metrics
 
@@ -71,12 +71,7 @@ def run(preset: str, world: str, target: float, frames_cap: int, max_minutes: fl
                 reason = "time cap"
                 break
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+        stop_group(proc)
     records = read_metrics(metrics)
     last = records[-1] if records else {}
     config = json.loads((run_dir / "config.json").read_text()) if (run_dir / "config.json").exists() else {}
