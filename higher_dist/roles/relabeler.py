@@ -75,6 +75,7 @@ class Relabeler:
         return {**self.strategy.state_dict(), "pace": self.pace.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
+        state = dict(state)  # the caller's checkpoint stays as it was loaded
         if "pace" in state:
             self.pace.load_state_dict(state.pop("pace"))
         self.strategy.load_state_dict(state)
