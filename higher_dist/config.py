@@ -66,14 +66,16 @@ class DQNConfig:
     # Tuned on the paper world (docs/decisions.md, "Tuning on the paper world"); the small world keeps
     # the batch 64 / 5e-4 it was tuned with (make_config).
     batch_size: int = 256
-    lr: float = 1e-3
+    lr: float = 5e-4
     adam_eps: float = 1e-6
     gamma: float = 0.99
     n_step: int = 3
     huber_delta: float = 1.0
     grad_clip: float = 10.0
     target_update: str = "period"  # period | polyak
-    target_period: int = 500  # updates between hard target copies
+    # Updates between hard target copies: 1500 at batch 256 and 8 samples per frame is a copy every
+    # 48k env frames. Copies every 5k-16k frames learned half as much per frame on the paper world.
+    target_period: int = 1500
     polyak_tau: float = 0.005
     double: bool = True
     # Speed levers, each measured with `higher-bench learner --levers` (docs/benchmarks.md); none
@@ -227,7 +229,7 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
         # loss would cost more CPU than it saves.
         cfg = replace(
             cfg,
-            dqn=replace(cfg.dqn, batch_size=64, lr=5e-4, compile=False),
+            dqn=replace(cfg.dqn, batch_size=64, lr=5e-4, target_period=500, compile=False),
             generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=50.0, eval_every_updates=50),
             replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
             exploration=replace(cfg.exploration, decay_frames=50_000),

@@ -38,7 +38,9 @@ class RoleProcess:
     crash_times: list[float] = field(default_factory=list)
 
     def start(self, extra_env: dict[str, str] | None = None, log_to_file: bool = True) -> None:
-        env = dict(os.environ, HIGHER_RESTARTS=str(self.restarts), **(extra_env or {}))
+        # PYTHONFAULTHANDLER: a role killed by a signal (a segfault in a native library) leaves its
+        # Python stack in its log, where the supervisor's "exited with code -11" alone says nothing.
+        env = dict(os.environ, HIGHER_RESTARTS=str(self.restarts), PYTHONFAULTHANDLER="1", **(extra_env or {}))
         out = open(self.log_path, "ab") if log_to_file else None
         self.proc = subprocess.Popen(self.argv, stdout=out, stderr=subprocess.STDOUT if out else None, env=env)
         if out:
