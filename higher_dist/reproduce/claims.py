@@ -2,8 +2,8 @@
 reached) and a verdict, with the difference explained where there is one.
 
 Ours are the latest greedy evaluations of each run (`success_rate_eval_train` on training goals unless
-a line says otherwise): 64 episodes per goal set by default, so one evaluation has a standard error of
-up to 6 points. The thresholds that turn numbers into verdicts are printed in the table's rules column.
+a line says otherwise): `eval.episodes` episodes per goal set (256 by default, a standard error of up to
+3.1 points per evaluation; results.md states the runs' own figure). The thresholds that turn numbers into verdicts are printed in the table's rules column.
 """
 from __future__ import annotations
 
@@ -196,6 +196,13 @@ def method_table(plan: Plan) -> list[str]:
     return lines
 
 
+def _eval_episodes(plan: Plan) -> int:
+    """Greedy episodes per goal set of the plan's runs, from their configs as higher-cluster builds them."""
+    from higher_dist.reproduce.plan import check_configs
+
+    return min((c.eval.episodes for c in check_configs(plan).values()), default=0) or 1
+
+
 def write_results(plan: Plan, figures: dict[str, Path]) -> Path:
     s = plan.settings
     lines = [
@@ -203,11 +210,11 @@ def write_results(plan: Plan, figures: dict[str, Path]) -> Path:
         f"Written {time.strftime('%Y-%m-%d %H:%M')} on {platform.node() or 'this machine'} "
         f"({os.cpu_count()} cores, {platform.machine()}, Python {platform.python_version()}).",
         f"Command: `{' '.join(s.get('command') or ['higher-reproduce'])}`",
-        f"World {s.get('world')}, profile {s.get('profile')} (passed as {s.get('profile_mode')}), "
+        f"World {s.get('world')}, profile {s.get('profile')}, "
         f"{s.get('seeds')} seed(s), {s.get('frames', 0):,} env frames per run; the paper: {PAPER_SEEDS} seeds, "
         f"{PAPER_FRAMES:,} frames.", "",
-        "Ours: the latest greedy evaluation of each run (mean +- std over seeds; 64 episodes per goal set, so one "
-        "evaluation has a standard error of up to 6 points).", "",
+        f"Ours: the latest greedy evaluation of each run (mean +- std over seeds; {_eval_episodes(plan)} episodes per "
+        f"goal set, so one evaluation has a standard error of up to {50 / _eval_episodes(plan) ** 0.5:.1f} points).", "",
         "| claim of the paper | paper | ours | rule | verdict | why |", "| --- | --- | --- | --- | --- | --- |"]
     for row in claims(plan):
         lines.append(f"| {row['claim']} | {row['paper']} | {row['ours']} | {row['rule']} | **{row['verdict']}** | "

@@ -117,21 +117,14 @@ def print_plan(plan: plan_mod.Plan, spis: dict[str, float], parallel: int) -> No
     rows, wall, rates = estimate(plan, plan.runs, spis, parallel)
     s = plan.settings
     print(f"higher-reproduce plan for {plan.out}: experiments {', '.join(plan.experiments)}; world {s['world']}; "
-          f"profile {s['profile']} (passed as: {s['profile_mode']}); {s['seeds']} seed(s); {s['frames']:,} frames "
+          f"profile {s['profile']}; {s['seeds']} seed(s); {s['frames']:,} frames "
           f"per run (the paper: {plan_mod.PAPER_SEEDS} seeds x {plan_mod.PAPER_FRAMES:,} frames)")
-    profile = {}
-    for run in plan.runs:
-        flags = plan_mod.profile_flags(s["profile"], "generator" if run.kind == "generator" else run.preset,
-                                       s["profile_mode"])
-        profile.setdefault(" ".join(flags) or "(none)", []).append(run.variant)
-    for flags, variants in profile.items():
-        print(f"  profile flags of {', '.join(dict.fromkeys(variants))}: {flags}")
+    own = plan_mod.profile_flags(s["profile"])
+    print(f"  profile flags of every run: {' '.join(own) or '(none)'}")
     print(f"{'run':<24}{'kind':<10}{'experiments':<14}{'budget':>12}{'state':>11}{'estimate':>10}  run's own flags")
     for row in rows:
         run = row["run"]
         budget = f"{run.pairs} pairs" if run.kind == "generator" else f"{run.frames:,}"
-        own = plan_mod.profile_flags(s["profile"], "generator" if run.kind == "generator" else run.preset,
-                                     s["profile_mode"])
         flags = " ".join(run.flags[len(own):]) + (f" --actors {run.actors}" if run.kind == "cluster"
                                                   else f" --steps {run.steps}")
         print(f"{run.name:<24}{run.kind:<10}{','.join(run.experiments):<14}{budget:>12}{row['state']:>11}"

@@ -6,10 +6,8 @@ so experiments that need the same run share it (the noise figure's DQN line is `
 second invocation with the same --out finds the runs of the first. The plan is written to
 DIR/plan.json before anything runs.
 
-The paper's settings come from `--profile paper`. Issue 13 adds them to the config as a `profile`
-field (and perhaps a `--profile` flag of higher-cluster); until then the plan passes the paper's
-settings that the config already knows as `--set` overrides (see `PAPER_FALLBACK`). Which of the
-three applies is detected, not assumed, and recorded in the plan.
+The paper's settings come from higher-cluster's `--profile paper` (config.py `paper_profile`); the
+default profile passes nothing, so a run gets this project's defaults.
 """
 from __future__ import annotations
 
@@ -17,7 +15,7 @@ import argparse
 import json
 import os
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,15 +32,6 @@ GENERATOR_PAIRS = (1000, 2000, 3000, 4000, 5000)
 GENERATOR_STEPS = 1500  # Adam steps per generator measurement (as `higher-bench generator`)
 GENERATOR_EVAL_PAIRS = 1000  # fresh pairs per goal set (seen, unseen)
 EVALS_PER_RUN = 10  # at least this many greedy evaluations per run, whatever its budget
-
-# The paper's settings that the config knew before the `profile` field (DESIGN.md section 7): linear
-# epsilon 1.0 -> 0.05 over 1e5 frames (4e5 for HIGhER), the ungated generator from 1000 pairs.
-_LINEAR = ("exploration.kind=linear", "exploration.eps_start=1.0", "exploration.eps_end=0.05")
-PAPER_FALLBACK = {
-    "higher": _LINEAR + ("exploration.decay_frames=400000", "generator.n_min=1000", "generator.min_accuracy=0"),
-    "default": _LINEAR + ("exploration.decay_frames=100000",),
-    "generator": (),  # a generator run reads only the generator's config: nothing above applies
-}
 
 # (variant, preset, label, extra --set overrides) of each experiment
 MAIN = (("dqn", "dqn", "DQN", ()), ("her", "her", "DQN+HER", ()), ("higher", "higher", "DQN+HIGhER", ()),
@@ -92,7 +81,7 @@ class Plan:
     out: Path
     runs: list[RunSpec]
     experiments: dict[str, list[str]]  # experiment -> run names, in figure order
-    settings: dict[str, Any]  # world, profile, profile_mode, seeds, frames, parallel, command
+    settings: dict[str, Any]  # world, profile, seeds, frames, parallel, command
 
     def path(self, run: RunSpec) -> Path:
         return self.out / "runs" / run.name
@@ -103,31 +92,11 @@ class Plan:
 
 
 # -- the profile -------------------------------------------------------------------------------------
-def profile_mode() -> str:
-    """How this checkout takes the paper profile: "flag" (higher-cluster --profile), "field" (a config
-    field `profile`, set with --set) or "sets" (no profile yet: the PAPER_FALLBACK overrides)."""
-    from higher_dist.cli import add_config_flags
-
-    parser = argparse.ArgumentParser(add_help=False)
-    add_config_flags(parser)
-    if any("--profile" in action.option_strings for action in parser._actions):
-        return "flag"
-    if "profile" in {f.name for f in fields(Config)}:
-        return "field"
-    return "sets"
-
-
-def profile_flags(profile: str, preset: str, mode: str) -> tuple[str, ...]:
+def profile_flags(profile: str) -> tuple[str, ...]:
+    """The higher-cluster flags of a profile (the generator runs read the same config)."""
     if profile not in PROFILES:
         raise ConfigError(f"--profile: must be one of {', '.join(PROFILES)}, got {profile!r}")
-    if profile == "default":
-        return ()  # the config's own defaults: nothing to pass
-    if mode == "flag":
-        return ("--profile", profile)
-    if mode == "field":
-        return ("--set", f"profile={profile}")
-    sets = PAPER_FALLBACK.get(preset, PAPER_FALLBACK["default"])
-    return tuple(x for s in sets for x in ("--set", s))
+    return () if profile == "default" else ("--profile", profile)
 
 
 # -- building the plan -------------------------------------------------------------------------------
@@ -150,7 +119,6 @@ def build_plan(out: str | os.PathLike, experiments: list[str], seeds: int, frame
         raise ConfigError(f"experiment: unknown {bad}; choose from {', '.join(EXPERIMENTS)}")
     if seeds < 1 or frames < 1 or parallel < 1 or generator_steps < 1:
         raise ConfigError("--seeds, --frames, --parallel and --generator-steps must be >= 1")
-    mode = profile_mode()
     actors = actors or default_actors(parallel)
     eval_every = _eval_every(world, frames)
     common = [x for s in sets for x in ("--set", s)]
@@ -167,13 +135,13 @@ def build_plan(out: str | os.PathLike, experiments: list[str], seeds: int, frame
                         continue
                     _add(by_name, names, RunSpec(
                         f"{variant}-s{seed}", "generator", variant, f"{pairs} expert pairs", "higher", seed, world,
-                        flags=(*profile_flags(profile, "generator", mode), *common), pairs=pairs, steps=generator_steps,
+                        flags=(*profile_flags(profile), *common), pairs=pairs, steps=generator_steps,
                         experiments=(experiment,)))
                 continue
             for variant, preset, label, extra in tables[experiment]:
                 if methods and variant not in methods and preset not in methods:
                     continue
-                flags = (*profile_flags(profile, preset, mode), *(x for s in extra for x in ("--set", s)), *common)
+                flags = (*profile_flags(profile), *(x for s in extra for x in ("--set", s)), *common)
                 _add(by_name, names, RunSpec(f"{variant}-s{seed}", "cluster", variant, label, preset, seed, world,
                                              frames=frames, flags=flags, actors=actors, eval_every=eval_every or 0,
                                              experiments=(experiment,)))
@@ -181,7 +149,7 @@ def build_plan(out: str | os.PathLike, experiments: list[str], seeds: int, frame
         raise ConfigError(f"--methods {','.join(methods or [])}: selects no run of {', '.join(experiments)}")
     # Seed-major: every method's first seed before any second seed, so a stopped plan has comparable runs.
     runs = sorted(by_name.values(), key=lambda r: (r.seed, list(by_name).index(r.name)))
-    settings = {"world": world, "profile": profile, "profile_mode": mode, "seeds": seeds, "frames": frames,
+    settings = {"world": world, "profile": profile, "seeds": seeds, "frames": frames,
                 "parallel": parallel, "actors_per_run": actors, "generator_steps": generator_steps,
                 "sets": list(sets), "command": command or [], "created": time.strftime("%Y-%m-%d %H:%M:%S")}
     return Plan(Path(out), runs, order, settings)

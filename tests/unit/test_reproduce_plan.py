@@ -41,20 +41,15 @@ def test_methods_filter_and_bad_names_are_refused(tmp_path):
         build(tmp_path, ("mian",))
 
 
-def test_profile_is_passed_the_way_this_checkout_takes_it(tmp_path):
-    assert plan_mod.profile_flags("paper", "her", "flag") == ("--profile", "paper")
-    assert plan_mod.profile_flags("paper", "her", "field") == ("--set", "profile=paper")
-    assert plan_mod.profile_flags("default", "higher", "sets") == ()
-    assert "exploration.decay_frames=400000" in plan_mod.profile_flags("paper", "higher", "sets")
+def test_profile_reaches_every_run_as_the_cluster_flag(tmp_path):
+    assert plan_mod.profile_flags("paper") == ("--profile", "paper")
+    assert plan_mod.profile_flags("default") == ()
     with pytest.raises(ConfigError, match="--profile"):
-        plan_mod.profile_flags("fast", "her", "sets")
+        plan_mod.profile_flags("fast")
     plan = build(tmp_path, ("main", "trigger"), seeds=1)
     configs = plan_mod.check_configs(plan)
     her, trigger0 = configs["her-s0"], configs["higher-trigger0-s0"]
-    if plan.settings["profile_mode"] == "sets":
-        assert her.exploration.kind == "linear" and her.exploration.decay_frames == 100_000
-    else:
-        assert her.profile == "paper"
+    assert her.profile == "paper" and her.exploration.kind == "linear" and her.exploration.decay_frames == 100_000
     assert trigger0.generator.n_min == 0 and trigger0.generator.min_accuracy == 0  # the run's own flags win
     assert configs["dqn-s0"].eval.every_frames == 10_000  # 100k frames: ten evaluations (the small world's own)
     short = plan_mod.check_configs(build(tmp_path, ("main",), seeds=1, frames=6000))
