@@ -9,6 +9,10 @@ common frames grid and drawn as a mean with a min-max band.
 Writes success_rate.png, success_rate_heldout.png (when held-out evaluations exist),
 generator_accuracy.png (when a generator was trained) and replay_composition.png.
 
+`--table` also writes each run's curve at its greedy evaluations as NAME.csv (frames, minutes, updates per
+frame, exploring and greedy success with standard errors, the generator's dataset, gate and accuracies)
+and prints the same as a Markdown table.
+
 Given a `higher-reproduce` folder (one holding plan.json), it draws that plan's figures instead (mean and
 one standard deviation over seeds, into DIR/figures) and rewrites DIR/results.md.
 """
@@ -214,6 +218,46 @@ def plot_replay(runs: list[Run], out: Path) -> Path:
     return _save(fig, out)
 
 
+# (column, metric key, digits): a run's curve, one row per greedy evaluation
+CURVE_COLUMNS = (("frames", m.FRAMES, 0), ("minutes", m.ELAPSED_S, 1), ("updates_per_frame", None, 4),
+                 ("exploring_success", m.SUCCESS_TRAIN, 3), ("greedy_train", m.SUCCESS_EVAL_TRAIN, 3),
+                 ("greedy_train_se", m.SUCCESS_EVAL_TRAIN + m.SE_SUFFIX, 3),
+                 ("greedy_heldout", m.SUCCESS_EVAL_HELDOUT, 3),
+                 ("greedy_heldout_se", m.SUCCESS_EVAL_HELDOUT + m.SE_SUFFIX, 3),
+                 ("dataset", m.RELABEL_DATASET_SIZE, 0), ("gate_open", m.RELABEL_GATE_OPEN, 0),
+                 ("generator_val", m.GENERATOR_VAL_ACCURACY, 3), ("relabel_accuracy_window", m.RELABEL_ACCURACY, 3),
+                 ("relabelled_episodes", m.RELABELLED_EPISODES, 0), ("contradicting", m.RELABEL_CONTRADICTING, 0))
+
+
+def curve_rows(run: Run) -> list[dict[str, str]]:
+    """The run's record at each new greedy evaluation (and its last record), as text cells."""
+    rows, last_eval = [], None
+    for i, r in enumerate(run.records):
+        evaluation = (r.get(m.SUCCESS_EVAL_TRAIN), r.get(m.SUCCESS_EVAL_HELDOUT))
+        if (evaluation == last_eval or evaluation == (None, None)) and i != len(run.records) - 1:
+            continue
+        last_eval = evaluation
+        row = {}
+        for column, key, digits in CURVE_COLUMNS:
+            value = r.get(key) if key else (r.get(m.UPDATES, 0) / r[m.FRAMES] if _num(r.get(m.FRAMES)) and r[m.FRAMES] else None)
+            if key == m.ELAPSED_S and _num(value):
+                value = value / 60
+            row[column] = "" if not _num(value) else f"{float(value):.{digits}f}"
+        rows.append(row)
+    return rows
+
+
+def write_table(run: Run, out: Path) -> Path:
+    rows = curve_rows(run)
+    path = out / f"{run.path.name}.csv"
+    header = [c for c, _, _ in CURVE_COLUMNS]
+    path.write_text("\n".join([",".join(header)] + [",".join(row[c] for c in header) for row in rows]) + "\n")
+    print(f"\n{run.label} ({run.path}):\n| {' | '.join(header)} |\n|{' --- |' * len(header)}")
+    for row in rows:
+        print(f"| {' | '.join(row[c] or '-' for c in header)} |")
+    return path
+
+
 def _save(fig, out: Path) -> Path:
     import matplotlib.pyplot as plt
 
@@ -227,6 +271,8 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser("higher-plot", description="Plot the curves of one or more runs.")
     parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories (or a folder of runs)")
     parser.add_argument("--out", default="plots", help="where the PNG files go (default: ./plots)")
+    parser.add_argument("--table", action="store_true",
+                        help="also write each run's curve at its evaluations as OUT/NAME.csv and print it")
     args = parser.parse_args(argv)
     if len(args.runs) == 1 and (Path(args.runs[0]) / "plan.json").is_file():
         # A higher-reproduce folder: the paper's figures (mean and one std over seeds) and results.md.
@@ -260,6 +306,8 @@ def main(argv: list[str]) -> int:
     else:
         print("higher-plot: no generator data in these runs; skipped generator_accuracy.png")
     written.append(plot_replay(runs, out / "replay_composition.png"))
+    if args.table:
+        written += [write_table(run, out) for run in runs]
     for path in written:
         print(path)
     return 0

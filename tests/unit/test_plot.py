@@ -72,3 +72,21 @@ def test_mean_band_over_common_range():
     assert grid[0] == 2.0 and grid[-1] == 8.0  # only where both seeds have data
     assert np.allclose(low, grid / 10) and np.allclose(high, 1.0) and np.allclose(mean, (grid / 10 + 1) / 2)
     assert mean_band([(np.array([0.0, 1.0]), np.zeros(2)), (np.array([2.0, 3.0]), np.zeros(2))]) is None
+
+
+def test_table_has_one_row_per_new_evaluation_and_the_last_record(tmp_path, capsys):
+    run = write_run(tmp_path / "higher_s0", "higher", 0, n=20)
+    out = tmp_path / "o"
+    assert main([str(run), "--out", str(out), "--table"]) == 0
+    lines = (out / "higher_s0.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    assert header[:5] == ["frames", "minutes", "updates_per_frame", "exploring_success", "greedy_train"]
+    rows = [dict(zip(header, line.split(","))) for line in lines[1:]]
+    # records 3..19 each carry a new evaluation; records 0-2 carry none and are not rows
+    assert len(rows) == 17
+    frames = [float(r["frames"]) for r in rows]
+    assert frames == sorted(frames) and frames[0] >= 3000
+    assert float(rows[-1]["greedy_train"]) == 0.7 and float(rows[-1]["greedy_heldout"]) == 0.6
+    assert rows[0]["generator_val"] == "" and float(rows[-1]["generator_val"]) > 0.8
+    printed = capsys.readouterr().out
+    assert "| frames | minutes |" in printed and printed.count("\n| ") >= 18
