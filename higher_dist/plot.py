@@ -240,6 +240,8 @@ def curve_rows(run: Run) -> list[dict[str, str]]:
         row = {}
         for column, key, digits in CURVE_COLUMNS:
             value = r.get(key) if key else (r.get(m.UPDATES, 0) / r[m.FRAMES] if _num(r.get(m.FRAMES)) and r[m.FRAMES] else None)
+            if isinstance(value, bool):  # the gate: 1 open, 0 closed
+                value = int(value)
             if key == m.ELAPSED_S and _num(value):
                 value = value / 60
             row[column] = "" if not _num(value) else f"{float(value):.{digits}f}"

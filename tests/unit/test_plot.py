@@ -26,6 +26,7 @@ def write_run(path: Path, preset: str, seed: int, n: int = 20, generator: bool =
                       "replay_success": 10 * i, "replay_wrong_pick": 30 * i, "replay_timeout": 50,
                       "replay_relabelled": 20 * i if generator else 0}
             if generator:
+                record["relabel_gate_open"] = i >= 6
                 record["generator_val_accuracy"] = None if i < 5 else 0.5 + progress / 3
                 record["relabel_accuracy"] = None if i < 8 else 0.7
             f.write(json.dumps(record) + "\n")
@@ -88,5 +89,6 @@ def test_table_has_one_row_per_new_evaluation_and_the_last_record(tmp_path, caps
     assert frames == sorted(frames) and frames[0] >= 3000
     assert float(rows[-1]["greedy_train"]) == 0.7 and float(rows[-1]["greedy_heldout"]) == 0.6
     assert rows[0]["generator_val"] == "" and float(rows[-1]["generator_val"]) > 0.8
+    assert [r["gate_open"] for r in rows[:4]] == ["0", "0", "0", "1"]
     printed = capsys.readouterr().out
     assert "| frames | minutes |" in printed and printed.count("\n| ") >= 18
