@@ -8,7 +8,7 @@ The cost estimate divides the frames left by a frames/s figure, taken from the f
 exists, and says which one it used:
 1. runs of this plan's folder on the same world (measured here, at the parallelism they ran with);
 2. `results/cluster.json` from `make bench` on this machine;
-3. the figure in docs/benchmarks.md for the 2-core development machine (650 frames/s).
+3. the figure measured on the 2-core development machine (docs/results.md: 1,000 frames/s per run).
 A run's learner bounds its frame rate at a fixed samples-per-insert ratio, so a run whose config asks
 for more samples per frame is assumed proportionally slower.
 """
@@ -23,7 +23,7 @@ from pathlib import Path
 from higher_dist.reproduce.plan import Plan, RunSpec
 from higher_dist.rundir import read_metrics
 
-FALLBACK_FPS = 650.0  # docs/benchmarks.md: 595-666 env frames/s end to end, 2-core development machine
+FALLBACK_FPS = 1000.0  # docs/results.md: 1,000-1,330 frames/s per run, two runs at a time, idle 2-core machine
 FALLBACK_SPI = 8.0  # the samples per insert those figures ran at
 FALLBACK_GEN_STEPS_PER_S = 35.0  # docs/benchmarks.md: 1500 generator steps in 34-55 s
 GEN_OVERHEAD_S = 15.0  # drawing pairs and evaluating, per generator run
@@ -100,8 +100,8 @@ def rates(plan: Plan, world: str, bench_dir: Path = Path("results")) -> Rates:
             source = f"measured: {bench_dir}/cluster.json from `make bench` on this machine ({fps:.0f} frames/s)"
         else:
             fps, spi = FALLBACK_FPS, FALLBACK_SPI
-            source = (f"not measured here: docs/benchmarks.md's {FALLBACK_FPS:.0f} frames/s for the 2-core development "
-                      f"machine (run `make bench`, or let a plan run, for a figure of this machine)")
+            source = (f"not measured here: {FALLBACK_FPS:.0f} frames/s, a plan's runs on the 2-core development "
+                      f"machine (docs/results.md; run `make bench`, or let a plan run, for a figure of this machine)")
     gen = _read_json(bench_dir / "generator.json")
     if gen and gen.get("steps_per_s"):
         gsps, gsource = float(gen["steps_per_s"]), f"{bench_dir}/generator.json ({gen['steps_per_s']} steps/s)"
