@@ -94,10 +94,13 @@ def claims(plan: Plan) -> list[dict]:
     row = {"claim": "DQN stays near random", "paper": "near 0 (no learning signal)", "ours": fmt(dqn),
            "rule": f"within 5 points of a uniformly random policy ({100 * rnd:.1f}% here)"}
     if dqn:
-        ok = dqn["mean"] <= rnd + 0.05
-        row["verdict"] = "holds" if ok else "does not hold"
-        row["why"] = ("" if ok else f"DQN learns here without relabelling ({100 * dqn['mean']:.0f}%): the world "
-                      f"{'is small, so random picks succeed often' if world == 'small' else 'gives it enough successes'}")
+        near = [v <= rnd + 0.05 for v in dqn.get("values", [dqn["mean"]])]
+        row["verdict"] = "holds" if all(near) else "does not hold" if not any(near) else "mixed"
+        learns = ("the world is small, so random picks succeed often" if world == "small"
+                  else "random picks give it enough successes to learn from")
+        seeds = ", ".join(f"{100 * v:.1f}%" for v in dqn.get("values", []))
+        row["why"] = ("" if all(near) else f"DQN learns here without relabelling ({100 * dqn['mean']:.0f}%): {learns}"
+                      if not any(near) else f"seeds disagree ({seeds}): some learn without relabelling, {learns}")
         row["budget"] = [dqn]
     rows.append(row)
 
@@ -130,6 +133,9 @@ def claims(plan: Plan) -> list[dict]:
         ok = gen["mean"] >= 0.70
         row["verdict"] = "holds" if ok else "not reached"
         row["why"] = "" if ok else _generator_state(groups)
+        if ok and gen["mean"] > 0.85 and plan.settings.get("profile") == "default":
+            row["why"] = ("ours is far above the paper's: with the default profile the embedding of the cell in front "
+                          "of the agent feeds the decoder directly (`--profile paper` removes it)")
         row["budget"] = [gen]
     rows.append(row)
 

@@ -78,14 +78,16 @@ def final(run: Run, key: str) -> float | None:
 
 
 def final_stats(group: Group | None, key: str) -> dict | None:
-    """mean, std, seeds and frames (the fewest any seed reached) of the latest values of `key`."""
+    """mean, std, seeds, frames (the fewest any seed reached) and the per-seed values of the latest values
+    of `key`."""
     if group is None:
         return None
     values = [v for v in (final(r, key) for r in group.runs) if v is not None]
     if not values:
         return None
     frames = min(int(max((rec.get("frames") or 0) for rec in r.records)) for r in group.runs)
-    return {"mean": float(np.mean(values)), "std": float(np.std(values)), "n": len(values), "frames": frames}
+    return {"mean": float(np.mean(values)), "std": float(np.std(values)), "n": len(values), "frames": frames,
+            "values": [float(v) for v in values]}
 
 
 def _figure(title: str, xlabel: str, ylabel: str):

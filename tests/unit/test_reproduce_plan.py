@@ -203,3 +203,20 @@ def test_noise_and_trigger_figures_and_their_verdicts(tmp_path):
     assert rows["DQN+HIGhER nearly matches DQN+HER"]["verdict"] == "holds"  # 45% against 50%
     assert rows["HIGhER's generator reaches 78% at 5M frames"]["verdict"] == "holds"
     assert "measured at 1,000 frames" in rows["DQN+reward reaches about 40%"]["why"]
+
+
+def test_dqn_near_random_is_judged_per_seed(tmp_path):
+    """A mean near random can hide one seed that learnt: the verdict says the seeds disagree."""
+    from higher_dist.reproduce.claims import claims, random_success
+
+    rnd = random_success("small")
+    for finals, verdict in (((rnd, rnd + 0.02), "holds"), ((0.0, rnd + 0.08), "mixed"),
+                            ((rnd + 0.2, rnd + 0.3), "does not hold")):
+        out = tmp_path / verdict.replace(" ", "-")
+        plan = plan_mod.merge_and_write(build(out, ("main",), seeds=2, frames=1000, methods=["dqn"]))
+        for seed, final in enumerate(finals):
+            _write_run(plan, f"dqn-s{seed}", final)
+        row = next(r for r in claims(plan) if r["claim"] == "DQN stays near random")
+        assert row["verdict"] == verdict, (finals, row)
+        if verdict == "mixed":
+            assert "seeds disagree" in row["why"] and f"{100 * (rnd + 0.08):.1f}%" in row["why"]
