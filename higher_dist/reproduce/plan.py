@@ -101,8 +101,10 @@ def profile_flags(profile: str) -> tuple[str, ...]:
 
 # -- building the plan -------------------------------------------------------------------------------
 def default_parallel() -> int:
-    """Runs at once that fit this machine: a run keeps about two cores busy (learner, actor, relabeler)."""
-    return max(1, (os.cpu_count() or 2) // 4)
+    """Runs at once that fit this machine: one per core. A run's roles wait on each other (the learner on
+    experience, the actor on weights), so one run alone leaves part of the machine idle; on the 2-core
+    development machine two runs at a time each ran at 1,000-1,330 frames/s (docs/results.md)."""
+    return max(1, os.cpu_count() or 1)
 
 
 def default_actors(parallel: int) -> int:
