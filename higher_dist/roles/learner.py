@@ -89,12 +89,15 @@ class LearnerRole:
         self.core.load_state_dict(state["core"])
         self.weights_version = int(state["weights_version"])
         torch.set_rng_state(state["torch_rng"])
+        # The run's clock goes on from the checkpoint's running time: a curve's minutes stay the run's own,
+        # not the minutes since its last restart (the downtime in between is not counted).
+        self.started = time.time() - float(state.get("elapsed_s", 0.0))
         log.info("resumed at %d frames, %d updates", self.core.frames, self.core.updates)
 
     def checkpoint(self) -> None:
         state = {"core": self.core.state_dict(with_replay=self.cfg.replay.checkpoint_replay),
                  "weights_version": self.weights_version, "torch_rng": torch.get_rng_state(),
-                 "config": self.cfg.to_dict()}
+                 "elapsed_s": time.time() - self.started, "config": self.cfg.to_dict()}
         self.rd.save_checkpoint("learner", state)
 
     # -- control ------------------------------------------------------------------------------------

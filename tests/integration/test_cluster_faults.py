@@ -389,6 +389,9 @@ def test_learner_resumes_from_its_checkpoint(tmp_path):
         assert first_after["frames"] == counters["frames"]
         assert first_after["episodes"] == counters["episodes"]
         assert first_after["relabelled_episodes"] == counters["relabelled_episodes"]
+        # The run's clock goes on from the checkpoint's running time, not from zero.
+        assert saved["elapsed_s"] == pytest.approx(stop_record["elapsed_s"], abs=1.0) and saved["elapsed_s"] > 0
+        assert first_after["elapsed_s"] >= round(saved["elapsed_s"], 1)
         assert f"resumed at {counters['frames']} frames, {counters['updates']} updates" in read_text(
             tmp_path / "learner.out")
 
