@@ -163,6 +163,9 @@ def watch(cfg, policy, episodes: int, goal_set: str, seed: int) -> list[Watched]
     """One greedy episode per environment of a batch of `episodes`, with the full state at every step."""
     from higher_dist.learning.acting import EpisodeCollector
 
+    if episodes < 1:
+        return []  # --goal-set both with one episode: no held-out one
+
     collector = EpisodeCollector(cfg.world, episodes, cfg.network.frame_stack, seed, goal_set=goal_set)
     world = collector.world
     out = [Watched(decode(collector.mission[i]), [], goal_set=goal_set) for i in range(episodes)]
@@ -248,6 +251,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     if not 1 <= args.episodes <= 64:
         return _die("--episodes: must be in [1, 64]")
+    if not 4 <= args.cell <= 64:
+        return _die(f"--cell: pixels per grid cell must be in [4, 64], got {args.cell}")
     if out.suffix.lower() not in (".gif", ".png"):
         return _die(f"--out {out}: must end in .gif or .png")
     try:

@@ -41,6 +41,12 @@ def test_gif_and_strip_of_greedy_episodes(run_dir, tmp_path):
                               capture_output=True, text=True, timeout=120)
         assert proc.returncode == 0, proc.stdout + proc.stderr
         assert "3 episodes" in proc.stdout
+    # One episode of "both" is a training-goal one (there is no held-out one to alternate with).
+    one = tmp_path / "one.png"
+    proc = subprocess.run([sys.executable, "-c", "import sys; from higher_dist.cli import render_main as m; "
+                           "sys.exit(m())", str(run_dir), "--episodes", "1", "--goal-set", "both", "--out", str(one)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and "1 episodes" in proc.stdout and one.is_file(), proc.stdout + proc.stderr
     with Image.open(gif) as im:
         assert im.format == "GIF" and im.n_frames >= 3
         assert gif.stat().st_size < 300_000
@@ -96,3 +102,6 @@ def test_refuses_a_folder_without_a_checkpoint(tmp_path, capsys):
     assert "must end in .gif or .png" in capsys.readouterr().err
     assert not (tmp_path / "x.gif").exists()
 
+    for flags, message in ((["--cell", "0"], "--cell"), (["--episodes", "0"], "--episodes")):
+        assert render.main([str(tmp_path), "--out", str(tmp_path / "x.gif"), *flags]) == 2
+        assert message in capsys.readouterr().err
