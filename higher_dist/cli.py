@@ -161,18 +161,16 @@ def learner_main(argv: list[str] | None = None) -> int:
     return _run("higher-learner", go)
 
 
-def _role_flags(p: argparse.ArgumentParser) -> None:
+def _role_flags(p: argparse.ArgumentParser, binds: bool = False) -> None:
     p.add_argument("--learner", required=True, help="the learner's control endpoint, tcp://HOST:PORT")
-    _security_flags(p, binds=False)
+    _security_flags(p, binds=binds)
     p.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: the run's)")
 
 
 def relabeler_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-relabeler", description="The relabeler: instruction generator service.")
-    _role_flags(p)
+    _role_flags(p, binds=True)
     p.add_argument("--bind-host", default=None, help="interface to bind its episodes socket")
-    p.add_argument("--insecure", action="store_true",
-                   help="allow binding beyond loopback without --keys (anyone reaching the port can push episodes)")
     p.add_argument("--advertise", default=None, metavar="tcp://HOST:PORT",
                    help="its episodes endpoint as actors should reach it (default: the learner's host, base+4)")
     p.add_argument("--state-dir", default=None, help="where its checkpoint goes (default: the run dir)")

@@ -26,6 +26,7 @@ EPSILON_MEAN = "epsilon_mean"
 SUCCESS_EVAL_TRAIN = "success_rate_eval_train"
 SUCCESS_EVAL_HELDOUT = "success_rate_eval_heldout"
 SUCCESS_TRAIN = "success_rate_train"
+EVAL_FRAMES = "eval_frames"  # env frames the evaluated weights had seen (every record repeats the latest)
 SE_SUFFIX = "_se"  # + on an eval key: its standard error, sqrt(p (1 - p) / episodes)
 EVAL_KEYS = (SUCCESS_EVAL_TRAIN, SUCCESS_EVAL_HELDOUT, SUCCESS_EVAL_TRAIN + SE_SUFFIX,
              SUCCESS_EVAL_HELDOUT + SE_SUFFIX)

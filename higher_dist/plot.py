@@ -230,11 +230,14 @@ CURVE_COLUMNS = (("frames", m.FRAMES, 0), ("minutes", m.ELAPSED_S, 1), ("updates
 
 
 def curve_rows(run: Run) -> list[dict[str, str]]:
-    """The run's record at each new greedy evaluation (and its last record), as text cells."""
+    """The run's record at each new greedy evaluation (and its last record), as text cells. Every record
+    repeats the latest evaluation: a new one is told by its frames (EVAL_FRAMES), or by new values in
+    records that lack them (the single-process runner's)."""
     rows, last_eval = [], None
     for i, r in enumerate(run.records):
-        evaluation = (r.get(m.SUCCESS_EVAL_TRAIN), r.get(m.SUCCESS_EVAL_HELDOUT))
-        if (evaluation == last_eval or evaluation == (None, None)) and i != len(run.records) - 1:
+        scores = (r.get(m.SUCCESS_EVAL_TRAIN), r.get(m.SUCCESS_EVAL_HELDOUT))
+        evaluation = (r.get(m.EVAL_FRAMES), *scores)
+        if (evaluation == last_eval or scores == (None, None)) and i != len(run.records) - 1:
             continue
         last_eval = evaluation
         row = {}

@@ -40,7 +40,7 @@ def crossings(records: list[dict], levels: list[float], launched: float) -> dict
             continue
         for level in levels:
             if level not in out and value >= level:
-                out[level] = {"frames": int(r.get("eval_frames", r["frames"])), "seconds": round(r["time"] - launched, 1),
+                out[level] = {"frames": int(r.get(names.EVAL_FRAMES, r["frames"])), "seconds": round(r["time"] - launched, 1),
                               "success": round(float(value), 3)}
     return out
 
@@ -77,7 +77,7 @@ def run(preset: str, world: str, target: float, frames_cap: int, max_minutes: fl
     config = json.loads((run_dir / "config.json").read_text()) if (run_dir / "config.json").exists() else {}
     found = crossings(records, levels, launched)
     # Every record repeats the latest evaluation: one entry per evaluation (its frames).
-    evals = {int(r.get("eval_frames", r["frames"])): r[SUCCESS_KEY] for r in records if r.get(SUCCESS_KEY) is not None}
+    evals = {int(r.get(names.EVAL_FRAMES, r["frames"])): r[SUCCESS_KEY] for r in records if r.get(SUCCESS_KEY) is not None}
     return {
         "preset": preset, "world": world, "seed": seed, "target": target, "stop": reason,
         "frames": int(last.get("frames", 0)), "seconds": round((last.get("time", launched)) - launched, 1),

@@ -117,6 +117,15 @@ def check_exposure(binds: dict[str, str], security: Security) -> None:
     security.warned.update(exposed.values())  # said once per port, not again when each socket is opened
 
 
+def check_binds(endpoints, bind_host: str | None, security: Security, binder: str | None = None) -> None:
+    """check_exposure for every channel that `binder` binds (every channel when None), as bound on
+    `bind_host`: all exposed ports are named in one refusal, before any socket exists."""
+    from higher_dist.launch.topology import bind_address
+
+    check_exposure({name: bind_address(endpoints[name], bind_host) for name, channel in CHANNELS.items()
+                    if binder in (None, channel.binder)}, security)
+
+
 def open_channel(ctx: zmq.Context, name: str, side: Literal["bind", "connect"], endpoint: str,
                  security: Security, bind_host: str | None = None, identity: bytes | str | None = None
                  ) -> zmq.Socket:

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from higher_dist.config import Config
-from higher_dist.launch.channels import CHANNELS, check_exposure
-from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, bind_address, check_free, parse_endpoint
+from higher_dist.launch.channels import check_binds
+from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, check_free, parse_endpoint
 from higher_dist.rundir import RunDir, read_metrics
 from higher_dist.wire.security import Security
 
@@ -172,7 +172,7 @@ def run_local_cluster(cfg: Config, run_dir: str, resume: bool = False, dashboard
     security = security or Security()
     endpoints = Endpoints.from_base(host, port_base or DEFAULT_BASE_PORT)
     # Refused here, once, rather than by each role in a restart loop.
-    check_exposure({name: bind_address(endpoints[name], bind_host) for name in CHANNELS}, security)
+    check_binds(endpoints, bind_host, security)
     rd = RunDir(run_dir)
     if resume and rd.load_checkpoint("learner") is None:
         raise ValueError(f"--resume: no learner checkpoint in {rd.path}")

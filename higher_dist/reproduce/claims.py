@@ -3,7 +3,8 @@ reached) and a verdict, with the difference explained where there is one.
 
 Ours are the latest greedy evaluations of each run (`success_rate_eval_train` on training goals unless
 a line says otherwise): `eval.episodes` episodes per goal set (256 by default, a standard error of up to
-3.1 points per evaluation; results.md states the runs' own figure). The thresholds that turn numbers into verdicts are printed in the table's rules column.
+3.1 points per evaluation; results.md states the runs' own figure). The thresholds that turn numbers
+into verdicts are printed in the table's rules column.
 """
 from __future__ import annotations
 
@@ -94,11 +95,11 @@ def claims(plan: Plan) -> list[dict]:
     row = {"claim": "DQN stays near random", "paper": "near 0 (no learning signal)", "ours": fmt(dqn),
            "rule": f"within 5 points of a uniformly random policy ({100 * rnd:.1f}% here)"}
     if dqn:
-        near = [v <= rnd + 0.05 for v in dqn.get("values", [dqn["mean"]])]
+        near = [v <= rnd + 0.05 for v in dqn["values"]]
         row["verdict"] = "holds" if all(near) else "does not hold" if not any(near) else "mixed"
         learns = ("the world is small, so random picks succeed often" if world == "small"
                   else "random picks give it enough successes to learn from")
-        seeds = ", ".join(f"{100 * v:.1f}%" for v in dqn.get("values", []))
+        seeds = ", ".join(f"{100 * v:.1f}%" for v in dqn["values"])
         row["why"] = ("" if all(near) else f"DQN learns here without relabelling ({100 * dqn['mean']:.0f}%): {learns}"
                       if not any(near) else f"seeds disagree ({seeds}): some learn without relabelling, {learns}")
         row["budget"] = [dqn]
@@ -211,6 +212,7 @@ def _eval_episodes(plan: Plan) -> int:
 
 def write_results(plan: Plan, figures: dict[str, Path]) -> Path:
     s = plan.settings
+    episodes = _eval_episodes(plan)
     lines = [
         "# Results of a higher-reproduce plan", "",
         f"Written {time.strftime('%Y-%m-%d %H:%M')} on {platform.node() or 'this machine'} "
@@ -219,8 +221,8 @@ def write_results(plan: Plan, figures: dict[str, Path]) -> Path:
         f"World {s.get('world')}, profile {s.get('profile')}, "
         f"{s.get('seeds')} seed(s), {s.get('frames', 0):,} env frames per run; the paper: {PAPER_SEEDS} seeds, "
         f"{PAPER_FRAMES:,} frames.", "",
-        f"Ours: the latest greedy evaluation of each run (mean +- std over seeds; {_eval_episodes(plan)} episodes per "
-        f"goal set, so one evaluation has a standard error of up to {50 / _eval_episodes(plan) ** 0.5:.1f} points).", "",
+        f"Ours: the latest greedy evaluation of each run (mean +- std over seeds; {episodes} episodes per "
+        f"goal set, so one evaluation has a standard error of up to {50 / episodes ** 0.5:.1f} points).", "",
         "| claim of the paper | paper | ours | rule | verdict | why |", "| --- | --- | --- | --- | --- | --- |"]
     for row in claims(plan):
         lines.append(f"| {row['claim']} | {row['paper']} | {row['ours']} | {row['rule']} | **{row['verdict']}** | "

@@ -15,12 +15,11 @@ for more samples per frame is assumed proportionally slower.
 from __future__ import annotations
 
 import json
-import os
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
-from higher_dist.reproduce.plan import Plan, RunSpec
+from higher_dist.reproduce.plan import Plan, RunSpec, default_parallel
 from higher_dist.rundir import read_metrics
 
 FALLBACK_FPS = 1000.0  # docs/results.md: 1,000-1,330 frames/s per run, two runs at a time, idle 2-core machine
@@ -124,10 +123,9 @@ def _read_json(path: Path) -> dict | None:
 
 
 def effective_parallel(parallel: int, n_runs: int) -> float:
-    """Runs that really progress at once: one per core (the per-run rates are measured that way: two runs
-    at a time on the 2-core machine)."""
-    cores = os.cpu_count() or 1
-    return max(1.0, min(parallel, n_runs, cores))
+    """Runs that really progress at once: at most the plan's default, one per core (the per-run rates are
+    measured that way: two runs at a time on the 2-core machine)."""
+    return max(1.0, min(parallel, n_runs, default_parallel()))
 
 
 def estimate(plan: Plan, runs: list[RunSpec], spis: dict[str, float], parallel: int,

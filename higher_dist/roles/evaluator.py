@@ -12,6 +12,7 @@ import threading
 
 import numpy as np
 
+from higher_dist import metrics as m
 from higher_dist.learning.agent import AgentBuilder
 
 log = logging.getLogger("higher.evaluator")
@@ -48,7 +49,7 @@ class BackgroundEvaluator:
             log.exception("evaluation at %d frames failed", frames)
             return
         with self._lock:
-            self._latest = {**result, "eval_frames": int(frames)}
+            self._latest = {**result, m.EVAL_FRAMES: int(frames)}
             self.evaluations += 1
 
     def latest(self) -> dict[str, float]:

@@ -27,8 +27,8 @@ import zmq
 from higher_dist import config as config_mod
 from higher_dist import metrics as m
 from higher_dist.config import Config
-from higher_dist.launch.channels import CHANNELS, check_exposure, open_channel
-from higher_dist.launch.topology import Endpoints, bind_address
+from higher_dist.launch.channels import check_binds, open_channel
+from higher_dist.launch.topology import Endpoints
 from higher_dist.learning.agent import AgentBuilder
 from higher_dist.roles.client import REJECT_STAT_PREFIX, REJOIN
 from higher_dist.roles.evaluator import BackgroundEvaluator
@@ -53,8 +53,7 @@ class LearnerRole:
         # Without keys, every port bound beyond loopback is named at once, before anything is written:
         # refused, or warned about under --insecure.
         self.security = security or Security()
-        check_exposure({name: bind_address(endpoints[name], bind_host) for name, channel in CHANNELS.items()
-                        if channel.binder == "learner"}, self.security)
+        check_binds(endpoints, bind_host, self.security, binder="learner")
         self.rd = RunDir(run_dir, tensorboard=cfg.tensorboard)
         self.agent = AgentBuilder(cfg)
         self.core = self.agent.learner_core()
