@@ -120,6 +120,11 @@ class ExplorationConfig:
     # this many env frames (0: the ladder from the start). Early random picks feed HER its wrong picks
     # and HIGhER's generator its first successes, while the greedy rungs take over later.
     warmup_frames: int = 0
+    # Temporally extended exploration, ez-greedy (Dabney et al. 2021): an exploratory action is held
+    # for n steps, n ~ zeta(repeat_mu) capped at repeat_max, so a random walk can cross the room instead
+    # of jittering in place. repeat_max = 1 is plain epsilon-greedy.
+    repeat_max: int = 1
+    repeat_mu: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -395,6 +400,8 @@ def validate(cfg: Config) -> None:
     _check(e.kind in ("apex", "linear"), f"exploration.kind: must be apex or linear, got {e.kind!r}")
     _check(0 <= e.eps_base <= 1 and 0 <= e.eps_end <= e.eps_start <= 1, "exploration: epsilons must lie in [0, 1], end <= start")
     _check(e.warmup_frames >= 0, f"exploration.warmup_frames: must be >= 0, got {e.warmup_frames}")
+    _check(e.repeat_max >= 1, f"exploration.repeat_max: must be >= 1, got {e.repeat_max}")
+    _check(e.repeat_mu > 0, f"exploration.repeat_mu: must be > 0, got {e.repeat_mu}")
     g = cfg.generator
     _check(0 < g.val_fraction < 1, f"generator.val_fraction: must be in (0, 1), got {g.val_fraction}")
     _check(0 <= g.min_accuracy <= 1, f"generator.min_accuracy: must be in [0, 1], got {g.min_accuracy}")

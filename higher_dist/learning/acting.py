@@ -14,7 +14,7 @@ import torch
 
 from higher_dist.config import NetworkConfig, WorldConfig
 from higher_dist.learning.episode import SUCCESS, Episode
-from higher_dist.learning.exploration import epsilon_greedy
+from higher_dist.learning.exploration import Explorer, epsilon_greedy
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
 from higher_dist.world.grid import BatchedFetchAttr
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
@@ -94,11 +94,16 @@ class TorchQFunction:
         return self.net(o, m).float().cpu().numpy()
 
 
-def act(collector: EpisodeCollector, q_fn: QFunction, eps: np.ndarray, rng: np.random.Generator) -> list[Episode]:
-    """One epsilon-greedy step of every environment of the collector."""
+def act(collector: EpisodeCollector, q_fn: QFunction, eps: np.ndarray, rng: np.random.Generator,
+        explorer: Explorer | None = None) -> list[Episode]:
+    """One epsilon-greedy step of every environment of the collector (temporally extended when the
+    explorer holds exploratory actions over several steps)."""
     obs, mission = collector.observation()
-    actions = epsilon_greedy(q_fn(obs, mission), eps, rng)
-    return collector.step(actions)
+    if explorer is None:
+        return collector.step(epsilon_greedy(q_fn(obs, mission), eps, rng))
+    episodes = collector.step(explorer(q_fn(obs, mission), eps, rng))
+    explorer.episodes_ended(collector.last_outcome >= 0)
+    return episodes
 
 
 def evaluate(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, episodes: int, goal_set: str,

@@ -13,7 +13,7 @@ import numpy as np
 
 from higher_dist.config import Config
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate_goal_sets
-from higher_dist.learning.exploration import actor_epsilons
+from higher_dist.learning.exploration import Explorer, actor_epsilons
 from higher_dist.learning.learner_core import LearnerCore
 from higher_dist.learning.relabel import RelabelStrategy, make_relabeler
 from higher_dist.world.spec import WorldSpec
@@ -128,6 +128,10 @@ class AgentBuilder:
 
     def exploration_rng(self, actor: int) -> np.random.Generator:
         return np.random.default_rng(self.seeds.actor_exploration(actor))
+
+    def explorer(self, n_envs: int) -> Explorer:
+        e = self.cfg.exploration
+        return Explorer(n_envs, self.spec.n_actions, e.repeat_max, e.repeat_mu)
 
     # -- cadences ----------------------------------------------------------------------------------
     def epsilons(self, actor: int, n_envs: int, learner_frames: int) -> np.ndarray:

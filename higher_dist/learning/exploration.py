@@ -13,7 +13,8 @@ import numpy as np
 
 from higher_dist.config import ExplorationConfig
 
-__all__ = ["apex_epsilons", "linear_schedule", "linear_epsilon", "actor_epsilons", "epsilon_greedy"]
+__all__ = ["apex_epsilons", "linear_schedule", "linear_epsilon", "actor_epsilons", "epsilon_greedy",
+           "Explorer", "zeta_durations"]
 
 
 def apex_epsilons(n: int, eps_base: float, alpha: float) -> np.ndarray:
@@ -72,3 +73,49 @@ def epsilon_greedy(q_values: np.ndarray, eps: np.ndarray | float, rng: np.random
     explore = rng.random(batch) < eps
     random_actions = rng.integers(0, n_actions, size=batch)
     return np.where(explore, random_actions, greedy).astype(np.int64)
+
+
+def zeta_durations(repeat_max: int, mu: float) -> tuple[np.ndarray, np.ndarray]:
+    """Durations 1..repeat_max and their probabilities, p(n) proportional to n ** -mu."""
+    if repeat_max < 1 or mu <= 0:
+        raise ValueError(f"zeta_durations needs repeat_max >= 1 and mu > 0, got {repeat_max}, {mu}")
+    n = np.arange(1, repeat_max + 1, dtype=np.float64)
+    p = n ** -float(mu)
+    return n.astype(np.int64), p / p.sum()
+
+
+class Explorer:
+    """Epsilon-greedy over a batch of environments, optionally temporally extended (ez-greedy).
+
+    With repeat_max = 1 every step is an independent epsilon-greedy choice (`epsilon_greedy`, same random
+    draws). With repeat_max > 1, an environment that is not already exploring starts with probability
+    eps[b] an exploratory run: a uniform action held for n ~ zeta(mu) steps (capped), after which the
+    greedy policy resumes. A run never outlives its episode: call `episodes_ended` after each step.
+    """
+
+    def __init__(self, n_envs: int, n_actions: int, repeat_max: int = 1, mu: float = 2.0):
+        self.n_actions = n_actions
+        self.repeat_max = repeat_max
+        self.durations, self.duration_p = zeta_durations(repeat_max, mu)
+        self.held = np.zeros(n_envs, np.int64)
+        self.left = np.zeros(n_envs, np.int64)  # steps of the current exploratory run still to act
+
+    def __call__(self, q_values: np.ndarray, eps: np.ndarray | float, rng: np.random.Generator) -> np.ndarray:
+        if self.repeat_max == 1:
+            return epsilon_greedy(q_values, eps, rng)
+        q = np.asarray(q_values)
+        batch = q.shape[0]
+        if batch != self.left.shape[0]:
+            raise ValueError(f"q_values has {batch} rows for an explorer of {self.left.shape[0]} envs")
+        eps = np.broadcast_to(np.asarray(eps, dtype=np.float64), (batch,))
+        holding = self.left > 0
+        start = ~holding & (rng.random(batch) < eps)
+        self.held = np.where(start, rng.integers(0, self.n_actions, size=batch), self.held)
+        self.left = np.where(start, rng.choice(self.durations, size=batch, p=self.duration_p), self.left)
+        exploring = holding | start
+        self.left = np.where(exploring, self.left - 1, 0)
+        return np.where(exploring, self.held, q.argmax(axis=1)).astype(np.int64)
+
+    def episodes_ended(self, ended: np.ndarray) -> None:
+        """Stop the exploratory runs of the environments whose episode just ended."""
+        self.left[np.asarray(ended, dtype=bool)] = 0

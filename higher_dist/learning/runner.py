@@ -30,6 +30,7 @@ class SingleProcessRunner:
         self.pace = self.agent.generator_pace()
         self.collectors = [self.agent.collector(i) for i in range(cfg.actors)]
         self.rngs = [self.agent.exploration_rng(i) for i in range(cfg.actors)]
+        self.explorers = [self.agent.explorer(c.n_envs) for c in self.collectors]
         self.policy = self.agent.policy()
         self.weights_version = 0
         self._sync_policy()
@@ -51,7 +52,7 @@ class SingleProcessRunner:
         while frames_done < budget:
             for i, collector in enumerate(self.collectors):
                 eps = self.agent.epsilons(i, collector.n_envs, self.core.frames)
-                episodes = act(collector, self.policy, eps, self.rngs[i])
+                episodes = act(collector, self.policy, eps, self.rngs[i], self.explorers[i])
                 frames_done += collector.n_envs
                 if episodes:
                     self._handle(episodes)

@@ -43,6 +43,7 @@ def run_actor(learner: str, actor_id: int | None = None, security: Security | No
     policy = agent.policy()
     expected = {k: v.shape for k, v in policy.net.state_dict().items()}
     rng = agent.exploration_rng(idx)
+    explorer = agent.explorer(collector.n_envs)
     version, learner_frames, buffer = -1, 0, []
     frames, last_send, last_stats, t0 = 0, time.time(), time.time(), time.time()
     successes, finished = 0, 0
@@ -65,7 +66,7 @@ def run_actor(learner: str, actor_id: int | None = None, security: Security | No
                 client.heartbeat({"frames": frames, "weights_version": version})
                 continue
             eps = agent.epsilons(idx, collector.n_envs, learner_frames)
-            episodes = act(collector, policy, eps, rng)
+            episodes = act(collector, policy, eps, rng, explorer)
             frames += collector.n_envs
             buffer.extend(episodes)
             finished += len(episodes)

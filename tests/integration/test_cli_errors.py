@@ -56,6 +56,7 @@ def test_cluster_refuses_bad_flags_as_a_process(tmp_path, flags, expected):
     (["--world", "small", "--set", "world.n_objects=1000"], ["world.n_objects", "1000", "do not fit"]),
     (["--set", "nosuch.field=1"], ["nosuch.field", "no such config field"]),
     (["--set", "dqn.lr=fast"], ["dqn.lr", "expected a number"]),
+    (["--set", "exploration.repeat_max=0"], ["exploration.repeat_max", "must be >= 1"]),
     (["--set", "frames"], ["--set", "FIELD=VALUE"]),
 ])
 def test_cluster_refuses_bad_flags_and_configs(tmp_path, flags, expected):

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from higher_dist.config import ExplorationConfig
-from higher_dist.learning.exploration import actor_epsilons, apex_epsilons, epsilon_greedy, linear_epsilon
+from higher_dist.learning.exploration import (Explorer, actor_epsilons, apex_epsilons, epsilon_greedy, linear_epsilon,
+                                              zeta_durations)
 
 
 def test_apex_epsilons_formula():
@@ -88,3 +89,61 @@ def test_apex_warmup_starts_every_slot_at_one_and_reaches_the_ladder():
     np.testing.assert_allclose(actor_epsilons(cfg, 0, 2, 8, 500), (1.0 + plain) / 2)
     np.testing.assert_allclose(actor_epsilons(cfg, 0, 2, 8, 1000), plain)
     np.testing.assert_allclose(actor_epsilons(cfg, 0, 2, 8, 10**7), plain)
+
+
+def test_explorer_without_repeats_is_plain_epsilon_greedy_draw_for_draw():
+    q = np.random.default_rng(1).normal(size=(16, 4))
+    eps = np.linspace(0.0, 1.0, 16)
+    a, b = np.random.default_rng(7), np.random.default_rng(7)
+    explorer = Explorer(16, 4, repeat_max=1)
+    for _ in range(20):
+        assert np.array_equal(explorer(q, eps, a), epsilon_greedy(q, eps, b))
+
+
+def test_zeta_durations_follow_a_power_law():
+    n, p = zeta_durations(10, 2.0)
+    assert list(n) == list(range(1, 11)) and p.sum() == pytest.approx(1.0)
+    assert p[0] / p[1] == pytest.approx(4.0) and p[0] / p[9] == pytest.approx(100.0)
+
+
+def test_explorer_holds_an_exploratory_action_for_zeta_distributed_runs():
+    # eps = 1: every step belongs to a run; a run is a maximal stretch of one held action that starts
+    # when the previous run's counter reaches zero. Measure run lengths through the counter itself.
+    envs, steps = 2000, 40
+    explorer = Explorer(envs, 4, repeat_max=8, mu=2.0)
+    rng = np.random.default_rng(0)
+    q = np.zeros((envs, 4))
+    lengths, current = [], np.zeros(envs, np.int64)
+    prev_action = None
+    for _ in range(steps):
+        starting = explorer.left == 0
+        lengths.extend(current[starting & (current > 0)])
+        current[starting] = 0
+        actions = explorer(q, 1.0, rng)
+        if prev_action is not None:
+            continuing = ~starting
+            assert np.array_equal(actions[continuing], prev_action[continuing])
+        current += 1
+        prev_action = actions
+    lengths = np.asarray(lengths)
+    _, p = zeta_durations(8, 2.0)
+    for d in (1, 2, 3):
+        assert np.mean(lengths == d) == pytest.approx(p[d - 1], abs=0.02)
+    assert lengths.max() <= 8
+
+
+def test_explorer_with_zero_epsilon_is_greedy_and_runs_end_with_the_episode():
+    q = np.tile(np.array([0.0, 0.0, 1.0, 0.0]), (6, 1))
+    explorer = Explorer(6, 4, repeat_max=50, mu=0.5)
+    rng = np.random.default_rng(3)
+    assert np.array_equal(explorer(q, 0.0, rng), np.full(6, 2))
+    explorer(q, 1.0, rng)  # every env starts a run (mu 0.5: most last many steps)
+    ended = np.array([True, False, True, False, True, False])
+    explorer.episodes_ended(ended)
+    assert (explorer.left[ended] == 0).all()
+    assert np.array_equal(explorer(q, 0.0, rng)[ended], np.full(3, 2))
+
+
+def test_explorer_refuses_a_batch_of_the_wrong_size():
+    with pytest.raises(ValueError, match="rows"):
+        Explorer(4, 4, repeat_max=3)(np.zeros((5, 4)), 0.5, np.random.default_rng(0))
