@@ -53,12 +53,17 @@ class NetworkConfig:
     # above concatenation (docs/decisions.md).
     embed_dim: int = 8  # per-channel value embedding of the 7x7x4 view
     conv_channels: tuple[int, ...] = (16, 32)
-    frame_stack: int = 4  # memory of the past for partial observability; 1 = none
+    frame_stack: int = 8  # memory of the past for partial observability; 1 = none (small world: 4)
     fusion: str = "film"  # film | concat
     word_embed_dim: int = 16
     text_hidden: int = 32  # GRU over the instruction
     hidden: int = 64
     dueling: bool = True
+    # The head's output layers start scaled by this (biases at zero), so every seed starts with Q ~ 0.
+    # With PyTorch's default init (1.0) the initial Q of a seed ranged from -0.25 to +0.7 on the paper
+    # world; with a target copied every 48k frames that offset decays by only gamma^n per copy, and a
+    # seed starting at +0.6 valued wandering above picking and stalled (docs/decisions.md, round 3).
+    head_init_scale: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -234,6 +239,7 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
         # loss would cost more CPU than it saves.
         cfg = replace(
             cfg,
+            network=replace(cfg.network, frame_stack=4),
             dqn=replace(cfg.dqn, batch_size=64, lr=5e-4, target_period=500, compile=False),
             generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=50.0, eval_every_updates=50),
             replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
@@ -381,6 +387,7 @@ def validate(cfg: Config) -> None:
     n = cfg.network
     _check(n.fusion in ("film", "concat"), f"network.fusion: must be film or concat, got {n.fusion!r}")
     _check(n.frame_stack >= 1, f"network.frame_stack: must be >= 1, got {n.frame_stack}")
+    _check(n.head_init_scale > 0, f"network.head_init_scale: must be > 0, got {n.head_init_scale}")
     _check(len(n.conv_channels) >= 1, "network.conv_channels: needs at least one layer")
     d = cfg.dqn
     _check(d.batch_size >= 1, f"dqn.batch_size: must be >= 1, got {d.batch_size}")

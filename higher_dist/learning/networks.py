@@ -246,6 +246,10 @@ class QNetwork(nn.Module):
             self.advantage = nn.Linear(cfg.hidden, n_actions)
         else:
             self.q = nn.Linear(cfg.hidden, n_actions)
+        with torch.no_grad():  # Q ~ 0 at the start whatever the seed (NetworkConfig.head_init_scale)
+            for out in (self.value, self.advantage) if self.dueling else (self.q,):
+                out.weight.mul_(cfg.head_init_scale)
+                out.bias.zero_()
 
     def forward(self, views: torch.Tensor, mission: torch.Tensor) -> torch.Tensor:
         return self.q_values(views, self.encode_mission(mission))

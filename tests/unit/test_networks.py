@@ -209,3 +209,20 @@ def test_views_are_checked_while_another_thread_compiles() -> None:
         assert torch.compiler.is_compiling()
         with pytest.raises(ValueError, match="out of range"):
             enc(views)
+
+
+def test_every_seed_starts_with_q_near_zero_unlike_the_default_init() -> None:
+    # The paper world's Q-network (default config): PyTorch's default init gave seeds an initial Q from
+    # -0.25 to +0.7, which a slowly copied target carries for hundreds of thousands of frames.
+    rng = np.random.default_rng(0)
+    views = torch.from_numpy(random_views(rng, 64, NetworkConfig().frame_stack))
+    mission = torch.from_numpy(rng.integers(1, VOCAB, (64, 8)))
+    scaled, default = [], []
+    for seed in range(8):
+        for scale, out in ((NetworkConfig().head_init_scale, scaled), (1.0, default)):
+            torch.manual_seed(seed)
+            net = QNetwork(NetworkConfig(head_init_scale=scale))
+            with torch.no_grad():
+                out.append(float(net(views, mission).abs().max()))
+    assert max(scaled) < 0.02, scaled
+    assert max(default) > 0.1, default  # what the scaling prevents
