@@ -22,7 +22,7 @@ from pathlib import Path
 from higher_dist.reproduce.plan import Plan, RunSpec, default_parallel
 from higher_dist.rundir import read_metrics
 
-FALLBACK_FPS = 650.0  # docs/decisions.md round 3: ~665 frames/s per run with the 8-frame stack, two runs at a time, 2 cores
+FALLBACK_FPS = 1000.0  # docs/results.md: 1,000-1,330 frames/s per run, two runs at a time, idle 2-core machine
 FALLBACK_SPI = 8.0  # the samples per insert those figures ran at
 FALLBACK_GEN_STEPS_PER_S = 35.0  # docs/benchmarks.md: 1500 generator steps in 34-55 s
 GEN_OVERHEAD_S = 15.0  # drawing pairs and evaluating, per generator run
