@@ -53,7 +53,7 @@ class NetworkConfig:
     # above concatenation (docs/decisions.md).
     embed_dim: int = 8  # per-channel value embedding of the 7x7x4 view
     conv_channels: tuple[int, ...] = (16, 32)
-    frame_stack: int = 8  # memory of the past for partial observability; 1 = none (small world: 4)
+    frame_stack: int = 4  # memory of the past for partial observability; 1 = none (8: decisions.md round 3)
     fusion: str = "film"  # film | concat
     word_embed_dim: int = 16
     text_hidden: int = 32  # GRU over the instruction
@@ -239,7 +239,6 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
         # loss would cost more CPU than it saves.
         cfg = replace(
             cfg,
-            network=replace(cfg.network, frame_stack=4),
             dqn=replace(cfg.dqn, batch_size=64, lr=5e-4, target_period=500, compile=False),
             generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=50.0, eval_every_updates=50),
             replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
