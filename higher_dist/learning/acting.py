@@ -99,10 +99,10 @@ def act(collector: EpisodeCollector, q_fn: QFunction, eps: np.ndarray, rng: np.r
     """One epsilon-greedy step of every environment of the collector (temporally extended when the
     explorer holds exploratory actions over several steps)."""
     obs, mission = collector.observation()
-    if explorer is None:
-        return collector.step(epsilon_greedy(q_fn(obs, mission), eps, rng))
-    episodes = collector.step(explorer(q_fn(obs, mission), eps, rng))
-    explorer.episodes_ended(collector.last_outcome >= 0)
+    choose = explorer or epsilon_greedy  # the same call: (q_values, eps, rng) -> actions
+    episodes = collector.step(choose(q_fn(obs, mission), eps, rng))
+    if explorer is not None:
+        explorer.episodes_ended(collector.last_outcome >= 0)
     return episodes
 
 

@@ -110,8 +110,10 @@ class Explorer:
         eps = np.broadcast_to(np.asarray(eps, dtype=np.float64), (batch,))
         holding = self.left > 0
         start = ~holding & (rng.random(batch) < eps)
-        self.held = np.where(start, rng.integers(0, self.n_actions, size=batch), self.held)
-        self.left = np.where(start, rng.choice(self.durations, size=batch, p=self.duration_p), self.left)
+        n_start = int(start.sum())
+        if n_start:  # draws only for the runs that start
+            self.held[start] = rng.integers(0, self.n_actions, size=n_start)
+            self.left[start] = rng.choice(self.durations, size=n_start, p=self.duration_p)
         exploring = holding | start
         self.left = np.where(exploring, self.left - 1, 0)
         return np.where(exploring, self.held, q.argmax(axis=1)).astype(np.int64)
