@@ -83,6 +83,11 @@ class DQNConfig:
     target_period: int = 1500
     polyak_tau: float = 0.005
     double: bool = True
+    # > 0: the learner also keeps an exponential moving average of the online weights
+    # (avg <- avg + tau * (online - avg) after every update; 1 / tau updates is its memory) and every
+    # greedy evaluation scores it beside the online weights, on the same goals (`*_averaged` metrics).
+    # The actors act with the online weights and the loss never reads the average. 0: no average.
+    average_tau: float = 0.0
     # Speed levers, each measured with `higher-bench learner --levers` (docs/benchmarks.md); none
     # changes the maths. compile: torch.compile the loss (forward + backward), built on a background
     # thread while eager updates run, eager for good if it fails. joint_online: one online forward over
@@ -395,6 +400,7 @@ def validate(cfg: Config) -> None:
     _check(d.n_step >= 1, f"dqn.n_step: must be >= 1, got {d.n_step}")
     _check(d.target_update in ("period", "polyak"), f"dqn.target_update: must be period or polyak, got {d.target_update!r}")
     _check(0.0 < d.polyak_tau <= 1.0, f"dqn.polyak_tau: must be in (0, 1], got {d.polyak_tau}")
+    _check(0.0 <= d.average_tau <= 1.0, f"dqn.average_tau: must be in [0, 1] (0: no average), got {d.average_tau}")
     r = cfg.replay
     _check(r.capacity >= 2 * (w.max_steps + 1), f"replay.capacity: must hold at least two episodes, got {r.capacity}")
     _check(0 < r.min_size <= r.capacity, f"replay.min_size: must be in (0, capacity={r.capacity}], got {r.min_size}")

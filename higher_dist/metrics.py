@@ -30,6 +30,11 @@ EVAL_FRAMES = "eval_frames"  # env frames the evaluated weights had seen (every 
 SE_SUFFIX = "_se"  # + on an eval key: its standard error, sqrt(p (1 - p) / episodes)
 EVAL_KEYS = (SUCCESS_EVAL_TRAIN, SUCCESS_EVAL_HELDOUT, SUCCESS_EVAL_TRAIN + SE_SUFFIX,
              SUCCESS_EVAL_HELDOUT + SE_SUFFIX)
+# With dqn.average_tau > 0 the same evaluation (same goals) also scores the moving average of the
+# online weights, under the same names + this suffix (before any _se).
+AVERAGED_SUFFIX = "_averaged"
+SUCCESS_EVAL_TRAIN_AVERAGED = SUCCESS_EVAL_TRAIN + AVERAGED_SUFFIX
+SUCCESS_EVAL_HELDOUT_AVERAGED = SUCCESS_EVAL_HELDOUT + AVERAGED_SUFFIX
 
 # -- replay and learning --------------------------------------------------------------------------
 REPLAY_SIZE = "replay_size"
@@ -71,6 +76,8 @@ LABELS: dict[str, str] = {
     SUCCESS_EVAL_TRAIN: "greedy success, training goals",
     SUCCESS_EVAL_HELDOUT: "greedy success, held-out goals",
     SUCCESS_TRAIN: "training success (exploring, epsilon-greedy)",
+    SUCCESS_EVAL_TRAIN_AVERAGED: "greedy success of the averaged weights, training goals",
+    SUCCESS_EVAL_HELDOUT_AVERAGED: "greedy success of the averaged weights, held-out goals",
     GENERATOR_VAL_ACCURACY: "generator exact match (validation)",
     RELABEL_ACCURACY: "relabel accuracy (last 1000 relabels)",
     RELABEL_DATASET_SIZE: "generator pairs",

@@ -226,7 +226,10 @@ CURVE_COLUMNS = (("frames", m.FRAMES, 0), ("minutes", m.ELAPSED_S, 1), ("updates
                  ("greedy_heldout_se", m.SUCCESS_EVAL_HELDOUT + m.SE_SUFFIX, 3),
                  ("dataset", m.RELABEL_DATASET_SIZE, 0), ("gate_open", m.RELABEL_GATE_OPEN, 0),
                  ("generator_val", m.GENERATOR_VAL_ACCURACY, 3), ("relabel_accuracy_window", m.RELABEL_ACCURACY, 3),
-                 ("relabelled_episodes", m.RELABELLED_EPISODES, 0), ("contradicting", m.RELABEL_CONTRADICTING, 0))
+                 ("relabelled_episodes", m.RELABELLED_EPISODES, 0), ("contradicting", m.RELABEL_CONTRADICTING, 0),
+                 # empty unless the run kept a moving average of its weights (dqn.average_tau > 0)
+                 ("greedy_train_averaged", m.SUCCESS_EVAL_TRAIN_AVERAGED, 3),
+                 ("greedy_heldout_averaged", m.SUCCESS_EVAL_HELDOUT_AVERAGED, 3))
 
 
 def curve_rows(run: Run) -> list[dict[str, str]]:
@@ -305,6 +308,11 @@ def main(argv: list[str]) -> int:
     if heldout:
         written.append(plot_success(heldout, lambda run: "success_rate_eval_heldout",
                                     "Greedy success on held-out goals", out / "success_rate_heldout.png"))
+    averaged = [run for run in runs if run.has(m.SUCCESS_EVAL_TRAIN_AVERAGED)]
+    if averaged:
+        written.append(plot_success(averaged, lambda run: m.SUCCESS_EVAL_TRAIN_AVERAGED,
+                                    "Greedy success of the averaged weights on training goals",
+                                    out / "success_rate_averaged.png"))
     generator_runs = [run for run in runs if run.has(m.GENERATOR_VAL_ACCURACY) or run.has(m.RELABEL_ACCURACY)]
     if generator_runs:
         written.append(plot_generator(generator_runs, out / "generator_accuracy.png"))

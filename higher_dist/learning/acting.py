@@ -12,6 +12,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from higher_dist import metrics as m
 from higher_dist.config import NetworkConfig, WorldConfig
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.exploration import Explorer, epsilon_greedy
@@ -140,13 +141,14 @@ def _first_episode_successes(collector: EpisodeCollector, q_fn: QFunction, rng: 
     return int((first_outcome == SUCCESS).sum())
 
 
-def evaluate_goal_sets(q_fn: QFunction, cfg, seed: int) -> dict[str, float]:
+def evaluate_goal_sets(q_fn: QFunction, cfg, seed: int, suffix: str = "") -> dict[str, float]:
     """The periodic evaluation of a run (`cfg`: Config): greedy success on training and held-out goals,
-    each with its standard error (`_se`)."""
+    each with its standard error (`_se`). `suffix` names another policy scored on the same goals
+    (metrics.AVERAGED_SUFFIX for the averaged weights)."""
     k, n = cfg.network.frame_stack, cfg.eval.episodes
     out: dict[str, float] = {}
-    for goal_set in ("train", "heldout"):
+    for goal_set, key in (("train", m.SUCCESS_EVAL_TRAIN), ("heldout", m.SUCCESS_EVAL_HELDOUT)):
         rate, se = evaluate(q_fn, cfg.world, k, n, goal_set, seed)
-        out[f"success_rate_eval_{goal_set}"] = round(rate, 4)
-        out[f"success_rate_eval_{goal_set}_se"] = round(se, 4)
+        out[key + suffix] = round(rate, 4)
+        out[key + suffix + m.SE_SUFFIX] = round(se, 4)
     return out

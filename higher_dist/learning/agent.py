@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from higher_dist import metrics as m
 from higher_dist.config import Config
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate_goal_sets
 from higher_dist.learning.exploration import Explorer, actor_epsilons
@@ -147,6 +148,18 @@ class AgentBuilder:
         every = self.cfg.weights_every
         return updates_after // every != updates_before // every
 
-    def evaluate(self, q_fn, frames: int) -> dict[str, float]:
-        """Greedy success on training and held-out goals at `frames` learner frames."""
-        return evaluate_goal_sets(q_fn, self.cfg, seed=self.seeds.evaluation(frames))
+    def evaluate(self, q_fn, frames: int, suffix: str = "") -> dict[str, float]:
+        """Greedy success on training and held-out goals at `frames` learner frames (the same goals for
+        every policy scored at that count; `suffix` names the policy's metrics, see evaluate_goal_sets)."""
+        return evaluate_goal_sets(q_fn, self.cfg, seed=self.seeds.evaluation(frames), suffix=suffix)
+
+    def evaluate_weights(self, q_fn, online: dict, averaged: dict | None, frames: int) -> dict[str, float]:
+        """The periodic evaluation of a learner's weights, loaded into `q_fn` (an evaluation-only policy):
+        the online weights, and on the same goals the averaged weights when the learner keeps them
+        (dqn.average_tau > 0). Takes snapshots, so it can run off the learner's thread."""
+        q_fn.load(online)
+        out = self.evaluate(q_fn, frames)
+        if averaged is not None:
+            q_fn.load(averaged)
+            out.update(self.evaluate(q_fn, frames, suffix=m.AVERAGED_SUFFIX))
+        return out

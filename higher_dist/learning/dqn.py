@@ -149,6 +149,13 @@ class DQNLearner:
         self.target.eval()
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters())
+        # An exponential moving average of the online weights, for evaluation only (dqn.average_tau).
+        self.average: QNetwork | None = None
+        if dqn_cfg.average_tau > 0:
+            self.average = QNetwork(net_cfg, spec).to(self.device)
+            self.average.load_state_dict(self.online.state_dict())
+            self.average.requires_grad_(False)
+            self.average.eval()
         self.optimizer = _make_adam(self._online_params, dqn_cfg.lr, dqn_cfg.adam_eps)
         self.updates = 0
         self.skipped_updates = 0  # steps refused for a non-finite gradient
@@ -192,6 +199,7 @@ class DQNLearner:
             self.skipped_updates += 1
         self.updates += 1
         self._update_target()
+        self._update_average()
         metrics["grad_norm"] = grad_norm
         metrics["skipped_updates"] = float(self.skipped_updates)
         c = self.compiled
@@ -224,6 +232,13 @@ class DQNLearner:
                 # target <- target + tau * (online - target)
                 torch._foreach_lerp_(self._target_params, self._online_params, self.cfg.polyak_tau)
 
+    def _update_average(self) -> None:
+        if self.average is None:
+            return
+        with torch.no_grad():
+            # Buffers (none in today's network) would be copied as they are by a state_dict load.
+            torch._foreach_lerp_(list(self.average.parameters()), self._online_params, self.cfg.average_tau)
+
     def sync_target(self) -> None:
         """Hard copy online -> target."""
         with torch.no_grad():
@@ -241,22 +256,31 @@ class DQNLearner:
         """The online network's weights as float32 CPU arrays, to publish to actors."""
         return weights_numpy(self.online)
 
+    def average_weights_numpy(self) -> dict[str, np.ndarray] | None:
+        """The averaged weights as float32 CPU arrays, or None when dqn.average_tau is 0."""
+        return None if self.average is None else weights_numpy(self.average)
+
     def load_weights_numpy(self, weights: dict[str, np.ndarray]) -> None:
-        """Load published weights into both networks (e.g. to warm-start)."""
+        """Load published weights into every network (e.g. to warm-start)."""
         load_weights_numpy(self.online, weights)
         self.sync_target()
+        if self.average is not None:
+            self.average.load_state_dict(self.online.state_dict())
 
     def state_dict(self) -> dict[str, Any]:
         """Everything a checkpoint needs to resume learning exactly (RNG state is the caller's).
 
         The tensors are the live ones: save (torch.save) before the next update, or deep-copy."""
-        return {
+        state = {
             "online": self.online.state_dict(),
             "target": self.target.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "updates": self.updates,
             "skipped_updates": self.skipped_updates,
         }
+        if self.average is not None:
+            state["average"] = self.average.state_dict()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.online.load_state_dict(state["online"])
@@ -264,3 +288,6 @@ class DQNLearner:
         self.optimizer.load_state_dict(state["optimizer"])
         self.updates = int(state["updates"])
         self.skipped_updates = int(state.get("skipped_updates", 0))
+        if self.average is not None:
+            # A checkpoint from a run without the average starts it from the online weights.
+            self.average.load_state_dict(state.get("average", state["online"]))

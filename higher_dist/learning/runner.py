@@ -32,6 +32,7 @@ class SingleProcessRunner:
         self.rngs = [self.agent.exploration_rng(i) for i in range(cfg.actors)]
         self.explorers = [self.agent.explorer(c.n_envs) for c in self.collectors]
         self.policy = self.agent.policy()
+        self.eval_policy = self.agent.policy()  # evaluation loads the learner's current weights here
         self.weights_version = 0
         self._sync_policy()
 
@@ -62,7 +63,7 @@ class SingleProcessRunner:
                 self._sync_policy()
             # On the cadence, and once at the end: the run's last point is greedy success at its end.
             if evaluation.due(self.core.frames) or frames_done >= budget:
-                last_eval = self.agent.evaluate(self.policy, self.core.frames)
+                last_eval = self.evaluate()
             if frames_done >= next_metrics or frames_done >= budget:
                 next_metrics += metrics_every
                 record = self.metrics(frames_done, time.perf_counter() - start)
@@ -78,7 +79,11 @@ class SingleProcessRunner:
         train_generator(self.relabeler, self.pace)
 
     def evaluate(self) -> dict:
-        return self.agent.evaluate(self.policy, self.core.frames)
+        """Greedy success of the learner's current weights (and of their average, when kept), as the
+        cluster's learner evaluates them."""
+        dqn = self.core.dqn
+        return self.agent.evaluate_weights(self.eval_policy, dqn.weights_numpy(), dqn.average_weights_numpy(),
+                                           self.core.frames)
 
     def metrics(self, frames_done: int, elapsed: float) -> dict:
         record = self.core.metrics()

@@ -32,19 +32,21 @@ class BackgroundEvaluator:
     def busy(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def start(self, weights: dict[str, np.ndarray], frames: int) -> bool:
-        """Evaluate `weights` (a snapshot the caller no longer edits) at `frames`; False if still busy."""
+    def start(self, weights: dict[str, np.ndarray], frames: int,
+              averaged: dict[str, np.ndarray] | None = None) -> bool:
+        """Evaluate `weights` (a snapshot the caller no longer edits) at `frames`, and `averaged` (the
+        moving average of the weights, when the learner keeps one) on the same goals; False if still busy."""
         if self.busy:
             self.skipped += 1
             return False
-        self._thread = threading.Thread(target=self._run, args=(weights, frames), name="evaluator", daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(weights, averaged, frames), name="evaluator",
+                                        daemon=True)
         self._thread.start()
         return True
 
-    def _run(self, weights: dict[str, np.ndarray], frames: int) -> None:
+    def _run(self, weights: dict[str, np.ndarray], averaged: dict[str, np.ndarray] | None, frames: int) -> None:
         try:
-            self.policy.load(weights)
-            result = self.agent.evaluate(self.policy, frames)
+            result = self.agent.evaluate_weights(self.policy, weights, averaged, frames)
         except Exception:  # an evaluation bug must not take the learner down with it
             log.exception("evaluation at %d frames failed", frames)
             return

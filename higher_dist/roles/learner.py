@@ -232,7 +232,11 @@ class LearnerRole:
 
     def maybe_evaluate(self) -> None:
         if self.evaluation.due(self.core.frames):
-            self.evaluator.start(self.core.dqn.weights_numpy(), self.core.frames)
+            self.start_evaluation()
+
+    def start_evaluation(self) -> None:
+        dqn = self.core.dqn
+        self.evaluator.start(dqn.weights_numpy(), self.core.frames, dqn.average_weights_numpy())
 
     def _own_row(self) -> dict:
         return {"role": "learner", "id": 0, "host": socket.gethostname(), "pid": os.getpid(), "state": "alive",
@@ -317,7 +321,7 @@ class LearnerRole:
             pass
         self.evaluator.wait()
         if self.core.frames >= self.cfg.frames:  # the run's last point: greedy success at its end
-            self.evaluator.start(self.core.dqn.weights_numpy(), self.core.frames)
+            self.start_evaluation()
             self.evaluator.wait()
         record = self.record()
         self.rd.append_metrics(record)

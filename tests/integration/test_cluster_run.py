@@ -36,7 +36,8 @@ class FinishedRun:
 def finished_run(tmp_path_factory) -> FinishedRun:
     base = tmp_path_factory.mktemp("cluster_run")
     run_dir = base / "run"
-    watch, launcher, _ = start_cluster(run_dir, base, frames=BUDGET)
+    # With a moving average of the weights, so the run also shows it evaluated end to end.
+    watch, launcher, _ = start_cluster(run_dir, base, frames=BUDGET, **{"dqn.average_tau": 0.01})
     t0 = time.monotonic()
     try:
         # Poll while it runs: the roles table and the launcher's children give every pid to check later.
@@ -68,6 +69,14 @@ def test_metrics_record_increasing_frames_up_to_the_budget(finished_run):
     assert frames[-1] >= BUDGET
     times = [r["time"] for r in records]
     assert all(b >= a for a, b in zip(times, times[1:]))
+
+
+def test_the_last_record_holds_greedy_success_of_the_online_and_the_averaged_weights(finished_run):
+    last = finished_run.records[-1]
+    for key in ("success_rate_eval_train", "success_rate_eval_heldout", "success_rate_eval_train_averaged",
+                "success_rate_eval_heldout_averaged", "success_rate_eval_train_averaged_se"):
+        assert isinstance(last.get(key), float) and 0.0 <= last[key] <= 1.0, (key, last.get(key))
+    assert last["eval_frames"] >= BUDGET  # the end-of-run evaluation
 
 
 def test_the_learner_updates(finished_run):
@@ -198,7 +207,8 @@ def test_higher_plot_draws_the_finished_run(finished_run, tmp_path, capsys):
     assert plot_main([str(finished_run.run_dir), "--out", str(out)]) == 0
     written = {p.name: p for p in out.glob("*.png")}
     # The run has training success, relabeller accuracy and replay composition over frames.
-    assert {"success_rate.png", "generator_accuracy.png", "replay_composition.png"} <= set(written), written
+    assert {"success_rate.png", "generator_accuracy.png", "replay_composition.png",
+            "success_rate_averaged.png"} <= set(written), written
     for path in written.values():
         data = path.read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000

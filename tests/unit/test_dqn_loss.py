@@ -409,3 +409,37 @@ def test_a_failed_compile_leaves_the_learner_eager() -> None:
     assert not learner.compiled.ready and "expected" in learner.compiled.failed
     prio, metrics = learner.update(batch)  # the eager path, as if compile were off
     assert prio.shape == (8,) and np.isfinite(metrics["loss"])
+
+
+def test_averaged_weights_follow_the_moving_average_and_never_touch_learning() -> None:
+    """dqn.average_tau: avg <- avg + tau (online - avg) after each update, checked in numpy; the online
+    and target networks step exactly as without it, and a checkpoint carries the average."""
+    tau = 0.2
+    rng = np.random.default_rng(11)
+    batches = [random_batch(rng, 8) for _ in range(4)]
+    plain, averaged = make_learner(target_period=2), make_learner(target_period=2, average_tau=tau)
+    assert plain.average_weights_numpy() is None
+    expected = {k: v.copy() for k, v in averaged.weights_numpy().items()}  # starts at the online weights
+    for batch in batches[:3]:
+        prio_plain, _ = plain.update(batch)
+        prio_avg, _ = averaged.update(batch)
+        np.testing.assert_array_equal(prio_plain, prio_avg)
+        online = averaged.weights_numpy()
+        expected = {k: v + tau * (online[k] - v) for k, v in expected.items()}
+        got = averaged.average_weights_numpy()
+        assert got.keys() == expected.keys()
+        for k in expected:
+            np.testing.assert_allclose(got[k], expected[k], rtol=1e-5, atol=1e-6)
+    assert same(params_of(plain.online), params_of(averaged.online))
+    assert same(params_of(plain.target), params_of(averaged.target))
+    assert not same(params_of(averaged.average), params_of(averaged.online))
+    resumed = make_learner(target_period=2, average_tau=tau)
+    resumed.load_state_dict(copy.deepcopy(averaged.state_dict()))
+    assert same(params_of(resumed.average), params_of(averaged.average))
+    averaged.update(batches[3])
+    resumed.update(batches[3])
+    assert same(params_of(resumed.average), params_of(averaged.average))
+    # A checkpoint written without the average starts it from the online weights.
+    late = make_learner(average_tau=tau)
+    late.load_state_dict(copy.deepcopy(plain.state_dict()))
+    assert same(params_of(late.average), params_of(plain.online))
