@@ -19,7 +19,7 @@ from pathlib import Path
 
 from higher_dist.config import Config
 from higher_dist.launch.channels import check_binds
-from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, check_free, parse_endpoint
+from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, check_free, claim_ports, parse_endpoint
 from higher_dist.rundir import RunDir, read_metrics
 from higher_dist.wire.security import Security
 
@@ -176,7 +176,13 @@ def run_local_cluster(cfg: Config, run_dir: str, resume: bool = False, dashboard
     rd = RunDir(run_dir)
     if resume and rd.load_checkpoint("learner") is None:
         raise ValueError(f"--resume: no learner checkpoint in {rd.path}")
-    check_free(endpoints, bind_host)
+    port_claims = claim_ports(endpoints, bind_host)  # held until this function returns (a race otherwise)
+    try:
+        check_free(endpoints, bind_host)
+    except ValueError:
+        for claim in port_claims:
+            claim.close()
+        raise
     dashboard = dashboard and sys.stdout.isatty()
     sup = Supervisor(build_roles(cfg, rd, endpoints, resume, dashboard, security, bind_host), max_restarts, rd,
                      quiet=dashboard)
@@ -203,6 +209,8 @@ def run_local_cluster(cfg: Config, run_dir: str, resume: bool = False, dashboard
         sup.stop_all()
         for s, handler in old.items():
             signal.signal(s, handler)
+        for claim in port_claims:
+            claim.close()
     if stop_requested:
         sup.say("stopped on request; checkpoints written")
     records = read_metrics(rd.metrics_path)

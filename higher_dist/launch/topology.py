@@ -7,9 +7,12 @@ sent in the welcome message (which carries the relabeler's registered address fo
 """
 from __future__ import annotations
 
+import fcntl
 import re
 import socket
+import tempfile
 from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
 
 from higher_dist.launch.channels import CHANNELS, PORT_SPAN
 
@@ -98,6 +101,32 @@ def free_base_port(host: str = DEFAULT_HOST, span: int = PORT_SPAN, tries: int =
             for s in socks:
                 s.close()
     raise RuntimeError("no free port range found")
+
+
+def claim_ports(endpoints: "Endpoints", bind_host: str | None = None) -> list:
+    """Claim the cluster's ports on this machine for as long as the returned files stay open (a launcher
+    keeps them for its life; the OS drops the claims when it exits, however it exits).
+
+    check_free alone has a race: two launchers started at the same instant both find the ports free,
+    since neither learner has bound them yet, and the loser's learner then fails in a restart loop. An
+    exclusive flock per port (a lock file in the temp folder) closes it for launchers on one machine.
+    """
+    folder = Path(tempfile.gettempdir()) / "higher-dist-ports"
+    folder.mkdir(exist_ok=True)
+    held = []
+    for name, endpoint in sorted(endpoints.as_dict().items(), key=lambda kv: parse_endpoint(kv[1])[1]):
+        host, port = parse_endpoint(endpoint)
+        f = open(folder / f"{bind_host or host}-{port}.lock", "a+")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            for other in held:
+                other.close()
+            raise ValueError(f"{name} port {port} on {bind_host or host} is claimed by another higher-cluster "
+                             "starting on this machine: pick other ports with --port-base") from None
+        held.append(f)
+    return held
 
 
 def check_free(endpoints: "Endpoints", bind_host: str | None = None) -> None:

@@ -133,3 +133,33 @@ def test_cluster_refuses_ports_already_in_use(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"weights port {base + 2}" in err and "--port-base" in err, err
     assert not (tmp_path / "run" / "logs").exists()  # nothing was started
+
+
+def test_cluster_refuses_ports_another_launcher_is_claiming(tmp_path, capsys):
+    """Two launchers started at once on one port range both find the ports free (no learner has bound
+    them yet): the port claims make the second one refuse, by name, before it starts anything."""
+    from higher_dist.cli import cluster_main
+    from higher_dist.launch.topology import Endpoints, claim_ports, free_base_port
+
+    base = free_base_port()
+    claims = claim_ports(Endpoints.from_base("127.0.0.1", base))  # what a starting launcher holds
+    try:
+        rc = cluster_main(["--world", "small", "--no-dashboard", "--run-dir", str(tmp_path / "run"),
+                           "--port-base", str(base)])
+        assert rc == 2
+        err = capsys.readouterr().err
+        assert f"port {base}" in err and "another higher-cluster" in err and "--port-base" in err, err
+        assert not (tmp_path / "run" / "logs").exists()  # nothing was started
+        # An overlapping range is refused too; the claims are per port.
+        try:
+            claim_ports(Endpoints.from_base("127.0.0.1", base + 1))
+        except ValueError as e:
+            assert f"port {base + 1}" in str(e)
+        else:
+            raise AssertionError("an overlapping port range was claimed twice")
+    finally:
+        for claim in claims:
+            claim.close()
+    # Once the first launcher lets go (it exits), the range can be claimed again.
+    for claim in claim_ports(Endpoints.from_base("127.0.0.1", base + 1)):
+        claim.close()
