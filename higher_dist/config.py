@@ -72,6 +72,10 @@ class DQNConfig:
     # the batch 64 / 5e-4 it was tuned with (make_config).
     batch_size: int = 256
     lr: float = 5e-4
+    # > 0: the learning rate falls linearly from lr to lr * lr_end_fraction over this many env frames
+    # (the learner's frame count, the run's one clock), then stays there. 0: constant lr.
+    lr_decay_frames: int = 0
+    lr_end_fraction: float = 0.1
     adam_eps: float = 1e-6
     gamma: float = 0.99
     n_step: int = 3
@@ -396,6 +400,8 @@ def validate(cfg: Config) -> None:
     d = cfg.dqn
     _check(d.batch_size >= 1, f"dqn.batch_size: must be >= 1, got {d.batch_size}")
     _check(d.lr > 0, f"dqn.lr: must be > 0, got {d.lr}")
+    _check(d.lr_decay_frames >= 0, f"dqn.lr_decay_frames: must be >= 0 (0: constant lr), got {d.lr_decay_frames}")
+    _check(0.0 < d.lr_end_fraction <= 1.0, f"dqn.lr_end_fraction: must be in (0, 1], got {d.lr_end_fraction}")
     _check(0.0 <= d.gamma <= 1.0, f"dqn.gamma: must be in [0, 1], got {d.gamma}")
     _check(d.n_step >= 1, f"dqn.n_step: must be >= 1, got {d.n_step}")
     _check(d.target_update in ("period", "polyak"), f"dqn.target_update: must be period or polyak, got {d.target_update!r}")

@@ -47,6 +47,7 @@ Q_MEAN = "q_mean"
 TD_ABS_MEAN = "td_abs_mean"
 TARGET_MEAN = "target_mean"
 GRAD_NORM = "grad_norm"
+LEARNING_RATE = "learning_rate"  # the optimiser's, as of the last update (dqn.lr_decay_frames)
 SKIPPED_UPDATES = "skipped_updates"  # steps refused for a non-finite gradient
 LOSS_COMPILED = "loss_compiled"  # 1 once the update runs the torch.compile'd loss
 COMPILE_PENDING = "compile_pending"  # 1 while that compile runs in the background (updates run eager)

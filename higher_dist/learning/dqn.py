@@ -18,7 +18,7 @@ from higher_dist.learning.compiled_loss import CompiledLoss
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 from higher_dist.learning.networks import QNetwork, load_weights_numpy, weights_numpy
 
-__all__ = ["TransitionBatchLike", "dqn_terms", "dqn_loss", "DQNLearner"]
+__all__ = ["TransitionBatchLike", "dqn_terms", "dqn_loss", "learning_rate_at", "DQNLearner"]
 
 
 class TransitionBatchLike(Protocol):
@@ -118,6 +118,15 @@ def dqn_loss(
 def _metrics(loss: torch.Tensor, td_abs: torch.Tensor, q_mean: torch.Tensor, y_mean: torch.Tensor) -> dict[str, float]:
     return {"loss": float(loss.detach()), "q_mean": float(q_mean), "td_abs_mean": float(td_abs.mean()),
             "target_mean": float(y_mean)}
+
+
+def learning_rate_at(cfg: DQNConfig, frames: int) -> float:
+    """The learning rate after `frames` env frames: cfg.lr, falling linearly to cfg.lr * lr_end_fraction
+    over cfg.lr_decay_frames when that is > 0."""
+    if cfg.lr_decay_frames <= 0:
+        return cfg.lr
+    progress = min(1.0, max(0, frames) / cfg.lr_decay_frames)
+    return cfg.lr * (1.0 - progress * (1.0 - cfg.lr_end_fraction))
 
 
 def _make_adam(params: list[nn.Parameter], lr: float, eps: float) -> torch.optim.Adam:
@@ -231,6 +240,14 @@ class DQNLearner:
             with torch.no_grad():
                 # target <- target + tau * (online - target)
                 torch._foreach_lerp_(self._target_params, self._online_params, self.cfg.polyak_tau)
+
+    def set_learning_rate(self, lr: float) -> None:
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
+    @property
+    def learning_rate(self) -> float:
+        return float(self.optimizer.param_groups[0]["lr"])
 
     def _update_average(self) -> None:
         if self.average is None:

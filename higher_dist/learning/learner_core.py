@@ -10,7 +10,7 @@ import numpy as np
 
 from higher_dist import metrics as m
 from higher_dist.config import Config
-from higher_dist.learning.dqn import DQNLearner
+from higher_dist.learning.dqn import DQNLearner, learning_rate_at
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.rate_limiter import SamplesPerInsertLimiter
 from higher_dist.learning.replay import PrioritizedReplay
@@ -73,6 +73,8 @@ class LearnerCore:
         else:
             batch = self._next_batch.result() if self._next_batch is not None else self._sample()
             self._next_batch = self._prefetcher.submit(self._sample)
+        if self.cfg.dqn.lr_decay_frames > 0:
+            self.dqn.set_learning_rate(learning_rate_at(self.cfg.dqn, self.frames))
         priorities, metrics = self.dqn.update(batch)
         self._settle()
         self.replay.update_priorities(batch.indices, priorities, batch.generations)
@@ -114,6 +116,7 @@ class LearnerCore:
             m.RELABELLED_EPISODES: self.relabelled_episodes,
             m.SUCCESS_TRAIN: round(self.success_rate_train, 4),
             m.REPLAY_SIZE: len(self.replay), m.REPLAY_RATIO: round(self.limiter.ratio, 3),
+            m.LEARNING_RATE: self.dqn.learning_rate,
         }
         for origin, count in self.replay.composition().items():
             out[m.replay_origin(origin)] = int(count)

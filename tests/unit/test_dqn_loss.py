@@ -16,7 +16,7 @@ from torch import nn
 from higher_dist.world.spec import DEFAULT_SPEC
 from higher_dist.config import DQNConfig, NetworkConfig
 from higher_dist.learning.compiled_loss import CompiledLoss
-from higher_dist.learning.dqn import DQNLearner, dqn_loss, dqn_terms
+from higher_dist.learning.dqn import DQNLearner, dqn_loss, dqn_terms, learning_rate_at
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
 
 torch.set_num_threads(1)
@@ -443,3 +443,33 @@ def test_averaged_weights_follow_the_moving_average_and_never_touch_learning() -
     late = make_learner(average_tau=tau)
     late.load_state_dict(copy.deepcopy(plain.state_dict()))
     assert same(params_of(late.average), params_of(plain.online))
+
+
+@pytest.mark.parametrize("frames, expected", [(0, 1e-3), (500, 0.775e-3), (1000, 0.55e-3), (1500, 0.325e-3),
+                                              (2000, 1e-4), (10 ** 6, 1e-4), (-5, 1e-3)])
+def test_learning_rate_falls_linearly_to_its_end_fraction_then_stays(frames, expected) -> None:
+    cfg = DQNConfig(lr=1e-3, lr_decay_frames=2000, lr_end_fraction=0.1)
+    assert learning_rate_at(cfg, frames) == pytest.approx(expected, rel=1e-9)
+    assert learning_rate_at(DQNConfig(lr=1e-3), frames) == 1e-3  # 0 decay frames: constant
+
+
+def test_the_learner_core_steps_with_the_scheduled_learning_rate() -> None:
+    """The optimiser's lr follows the learner's frame count (original episodes only), update by update."""
+    from higher_dist.config import make_config
+    from higher_dist.learning.acting import EpisodeCollector
+    from higher_dist.learning.learner_core import LearnerCore
+
+    cfg = make_config("dqn", "small", **{"replay.min_size": 100, "dqn.batch_size": 16, "dqn.lr": 1e-3,
+                                         "dqn.lr_decay_frames": 600, "dqn.lr_end_fraction": 0.2})
+    core = LearnerCore(cfg)
+    collector = EpisodeCollector(cfg.world, 8, cfg.network.frame_stack, seed=3)
+    rng = np.random.default_rng(3)
+    seen = []
+    while core.frames < 900:
+        core.add_episodes(collector.step(rng.integers(0, 4, size=8)))
+        if core.train_available(max_updates=5):
+            seen.append((core.frames, core.dqn.learning_rate, core.metrics()["learning_rate"]))
+    assert len(seen) > 5
+    for frames, lr, reported in seen:
+        assert lr == pytest.approx(learning_rate_at(cfg.dqn, frames)) and reported == lr
+    assert seen[0][1] > seen[-1][1] == pytest.approx(2e-4)
