@@ -227,6 +227,8 @@ def _summary(r: dict) -> str:
     return (f"frames {f('frames')} | {f('frames_per_s', '{:.0f}')} fps | updates {f('updates')} "
             f"({f('updates_per_s', '{:.1f}')}/s) | greedy {f('success_rate_eval_train', '{:.2f}')}"
             f"±{f('success_rate_eval_train_se', '{:.2f}')} held-out {f('success_rate_eval_heldout', '{:.2f}')} | "
+            + (f"averaged {f('success_rate_eval_train_averaged', '{:.2f}')} | "
+               if r.get("success_rate_eval_train_averaged") is not None else "") +
             f"exploring {f('success_rate_train', '{:.2f}')} | "
             f"relabelled {f('relabelled_episodes')} | gen acc {f('generator_val_accuracy', '{:.2f}')} | "
             f"rejected {f('rejected_messages')}")

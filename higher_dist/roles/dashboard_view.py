@@ -241,6 +241,8 @@ def learning_panel(record: dict[str, Any]) -> Panel:
     # largest epsilon of the ladder, so it is labelled as such.
     t.add_row("greedy, train", fmt_eval(record, "success_rate_eval_train"))
     t.add_row("greedy, held-out", fmt_eval(record, "success_rate_eval_heldout"))
+    if _is_number(record.get(m.SUCCESS_EVAL_TRAIN_AVERAGED)):  # dqn.average_tau > 0
+        t.add_row("greedy, averaged", fmt_eval(record, m.SUCCESS_EVAL_TRAIN_AVERAGED))
     t.add_row("exploring, train", fmt_pct(record.get(m.SUCCESS_TRAIN)))
     return Panel(t, title="Learning", title_align="left")
 

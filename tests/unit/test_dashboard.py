@@ -84,6 +84,19 @@ def test_render_recorded_stream():
     assert "▂▃▃▄▅▆▆▇█" in text and "▃▄▅▅▆▇▇" in text  # exploring success and generator trends, 0-1 scale
     assert "greedy success" in text and "exploring success" in text
     assert "no telemetry" not in text and "waiting" not in text
+    assert "greedy, averaged" not in text  # a run without dqn.average_tau has no such row
+
+
+def test_averaged_weights_get_their_own_row_and_summary_field():
+    from higher_dist.launch.local_cluster import _summary
+
+    record = {**recorded_stream()[-1], "success_rate_eval_train_averaged": 0.625,
+              "success_rate_eval_train_averaged_se": 0.03}
+    state = DashboardState()
+    state.update(record, now=0.0)
+    text = export(render(state, now=0.5))
+    assert "greedy, averaged" in text and "62.5% ± 3.0" in text
+    assert "averaged 0.62 |" in _summary(record) and "averaged" not in _summary(recorded_stream()[-1])
 
 
 def test_dead_role_row_is_red():
