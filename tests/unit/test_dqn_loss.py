@@ -417,7 +417,7 @@ def test_averaged_weights_follow_the_moving_average_and_never_touch_learning() -
     tau = 0.2
     rng = np.random.default_rng(11)
     batches = [random_batch(rng, 8) for _ in range(4)]
-    plain, averaged = make_learner(target_period=2), make_learner(target_period=2, average_tau=tau)
+    plain, averaged = make_learner(target_period=2, average_tau=0.0), make_learner(target_period=2, average_tau=tau)
     assert plain.average_weights_numpy() is None
     expected = {k: v.copy() for k, v in averaged.weights_numpy().items()}  # starts at the online weights
     for batch in batches[:3]:
@@ -450,7 +450,7 @@ def test_averaged_weights_follow_the_moving_average_and_never_touch_learning() -
 def test_learning_rate_falls_linearly_to_its_end_fraction_then_stays(frames, expected) -> None:
     cfg = DQNConfig(lr=1e-3, lr_decay_frames=2000, lr_end_fraction=0.1)
     assert learning_rate_at(cfg, frames) == pytest.approx(expected, rel=1e-9)
-    assert learning_rate_at(DQNConfig(lr=1e-3), frames) == 1e-3  # 0 decay frames: constant
+    assert learning_rate_at(DQNConfig(lr=1e-3, lr_decay_frames=0), frames) == 1e-3  # 0 decay frames: constant
 
 
 def test_the_learner_core_steps_with_the_scheduled_learning_rate() -> None:
