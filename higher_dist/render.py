@@ -111,7 +111,9 @@ def draw_frame(shot: Snapshot, view_size: int, lines: list[str], cell: int = 24)
     return img.convert("RGB")
 
 
-def load_policy(run_dir: Path):
+def load_policy(run_dir: Path, weights: str = "online"):
+    """(config, greedy policy, frames) of the run's latest learner checkpoint. weights: "online", or
+    "averaged" for the moving average of the online weights the learner keeps (dqn.average_tau > 0)."""
     from higher_dist.learning.agent import AgentBuilder
     from higher_dist.rundir import RunDir
 
@@ -122,8 +124,12 @@ def load_policy(run_dir: Path):
     state = RunDir(run_dir).load_checkpoint("learner")
     if state is None:
         raise ConfigError(f"{run_dir}: no learner.ckpt to watch (has the run written a checkpoint yet?)")
+    dqn = state["core"]["dqn"]
+    key = "average" if weights == "averaged" else "online"
+    if key not in dqn:
+        raise ConfigError(f"--weights {weights}: {run_dir} kept no average of its weights (dqn.average_tau=0)")
     policy = AgentBuilder(cfg).policy()
-    policy.net.load_state_dict(state["core"]["dqn"]["online"])
+    policy.net.load_state_dict(dqn[key])
     return cfg, policy, int(state["core"]["counters"]["frames"])
 
 
@@ -247,6 +253,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="goals of the episodes: training, held-out, or both (alternating)")
     p.add_argument("--seed", type=int, default=0, help="seed of the episodes' layouts")
     p.add_argument("--cell", type=int, default=24, help="pixels per grid cell")
+    p.add_argument("--weights", choices=("online", "averaged"), default="online",
+                   help="the learner's online weights, or their moving average (dqn.average_tau)")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     out = Path(args.out)
     if not 1 <= args.episodes <= 64:
@@ -261,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
         return _die("Pillow is missing; pip install 'higher-dist[plot]'")
     run_dir = Path(args.run_dir)
     try:
-        cfg, policy, frames = load_policy(run_dir)
+        cfg, policy, frames = load_policy(run_dir, args.weights)
         strategy, note = load_relabeller(cfg, run_dir)
     except ConfigError as e:
         return _die(str(e))
@@ -274,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     for w in watched:
         w.relabel = relabel_text(strategy, note, w.episode, rng)
-    label = f"{cfg.preset} @ {frames:,} frames"
+    label = f"{cfg.preset} @ {frames:,} frames" + (", averaged weights" if args.weights == "averaged" else "")
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix.lower() == ".gif":
         save_gif(frames_of(watched, cfg.world.view_size, args.cell, label), out)

@@ -105,3 +105,33 @@ def test_refuses_a_folder_without_a_checkpoint(tmp_path, capsys):
     for flags, message in ((["--cell", "0"], "--cell"), (["--episodes", "0"], "--episodes")):
         assert render.main([str(tmp_path), "--out", str(tmp_path / "x.gif"), *flags]) == 2
         assert message in capsys.readouterr().err
+
+
+def test_the_averaged_weights_can_be_drawn_and_a_run_without_them_is_refused(run_dir, tmp_path, capsys):
+    import shutil
+
+    import torch
+
+    from higher_dist.rundir import RunDir
+
+    state = RunDir(run_dir).load_checkpoint("learner")
+    dqn = state["core"]["dqn"]
+    assert "average" in dqn  # the default config keeps the average
+    _, online, _ = render.load_policy(run_dir)
+    _, averaged, _ = render.load_policy(run_dir, "averaged")
+    for name, tensor in averaged.net.state_dict().items():
+        assert torch.equal(tensor, dqn["average"][name])
+    assert any(not torch.equal(a, b) for a, b in zip(online.net.state_dict().values(),
+                                                    averaged.net.state_dict().values()))
+    out = tmp_path / "avg.png"
+    assert render.main([str(run_dir), "--episodes", "1", "--weights", "averaged", "--out", str(out)]) == 0
+    assert "averaged weights" in capsys.readouterr().out and out.is_file()
+    # A run that kept no average (dqn.average_tau=0) is refused by name, with nothing drawn.
+    plain = tmp_path / "plain"
+    shutil.copytree(run_dir, plain)
+    del dqn["average"]
+    RunDir(plain).save_checkpoint("learner", state)
+    assert render.main([str(plain), "--weights", "averaged", "--out", str(tmp_path / "none.png")]) == 2
+    err = capsys.readouterr().err
+    assert "--weights averaged" in err and "dqn.average_tau=0" in err
+    assert not (tmp_path / "none.png").exists()
