@@ -6,6 +6,7 @@ priorities as data (the replay is updated by the caller).
 """
 from __future__ import annotations
 
+import copy
 from typing import Any, Protocol
 
 import numpy as np
@@ -158,13 +159,13 @@ class DQNLearner:
         self.target.eval()
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters())
-        # An exponential moving average of the online weights, for evaluation only (dqn.average_tau).
+        # An exponential moving average of the online weights, for evaluation only (dqn.average_tau). A
+        # deep copy, not a new QNetwork: building one would draw an initialisation from the global RNG.
         self.average: QNetwork | None = None
+        self._average_params: list[torch.Tensor] = []
         if dqn_cfg.average_tau > 0:
-            self.average = QNetwork(net_cfg, spec).to(self.device)
-            self.average.load_state_dict(self.online.state_dict())
-            self.average.requires_grad_(False)
-            self.average.eval()
+            self.average = copy.deepcopy(self.online).requires_grad_(False).eval()
+            self._average_params = list(self.average.parameters())
         self.optimizer = _make_adam(self._online_params, dqn_cfg.lr, dqn_cfg.adam_eps)
         self.updates = 0
         self.skipped_updates = 0  # steps refused for a non-finite gradient
@@ -253,8 +254,8 @@ class DQNLearner:
         if self.average is None:
             return
         with torch.no_grad():
-            # Buffers (none in today's network) would be copied as they are by a state_dict load.
-            torch._foreach_lerp_(list(self.average.parameters()), self._online_params, self.cfg.average_tau)
+            # avg <- avg + tau * (online - avg)
+            torch._foreach_lerp_(self._average_params, self._online_params, self.cfg.average_tau)
 
     def sync_target(self) -> None:
         """Hard copy online -> target."""
