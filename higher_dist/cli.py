@@ -1,70 +1,22 @@
 """Entry points. Each parses its flags, builds the config, and hands over to one module; bad flags and
-bad config values are refused with a message that says what is wrong (exit code 2)."""
+bad config values are refused with a message that says what is wrong (exit code 2). Each command imports
+the module it hands over to only when it runs, so no command pays for another's imports (torch, zmq, rich)."""
 from __future__ import annotations
 
 import argparse
 import json
 import sys
-from typing import Any, Callable
+import time
+from pathlib import Path
+from typing import Callable
 
-from higher_dist.config import PRESETS, PROFILES, WORLDS, Config, ConfigError, make_config
+from higher_dist.config import ConfigError, from_dict
+from higher_dist.config_flags import add_config_flags, config_from_args, positive_int
 
 
 def _die(prog: str, message: str) -> int:
     print(f"{prog}: error: {message}", file=sys.stderr)
     return 2
-
-
-def _parse_value(text: str) -> Any:
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def add_config_flags(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", choices=PRESETS, default="higher", help="the paper's method to run")
-    p.add_argument("--world", choices=WORLDS, default="paper", help="paper: 10x10, 10 objects; small: tests")
-    p.add_argument("--profile", choices=PROFILES, default="default",
-                   help="default: our tuned settings; paper: the paper's (docs/paper_settings.md)")
-    p.add_argument("--actors", type=_positive_int, default=None,
-                   help="actor processes (higher-cluster's default fits the machine: half its cores, 1 to 8)")
-    p.add_argument("--envs-per-actor", type=_positive_int, default=None, help="environments per actor")
-    p.add_argument("--frames", type=_positive_int, default=None, help="stop after this many env frames")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu", help="learner device: cpu or cuda[:N]")
-    p.add_argument("--threads", type=_positive_int, default=1, help="torch threads per process")
-    p.add_argument("--tensorboard", action="store_true", help="also write TensorBoard event files")
-    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                   help="override any config field, e.g. --set dqn.lr=0.001 (repeatable)")
-
-
-def config_from_args(args: argparse.Namespace) -> Config:
-    overrides: dict[str, Any] = {"seed": args.seed, "device": args.device, "torch_threads": args.threads,
-                                 "tensorboard": args.tensorboard}
-    for name in ("actors", "envs_per_actor", "frames"):
-        if getattr(args, name, None) is not None:
-            overrides[name] = getattr(args, name)
-    for item in args.set:
-        if "=" not in item:
-            raise ConfigError(f"--set {item!r}: expected FIELD=VALUE")
-        key, value = item.split("=", 1)
-        overrides[key.strip()] = _parse_value(value)
-    cfg = make_config(args.preset, args.world, args.profile, **overrides)
-    # Round trip through the wire form so --set values get the declared types (e.g. tuples).
-    from higher_dist.config import from_dict
-
-    return from_dict(cfg.to_dict())
 
 
 def _network_flags(p: argparse.ArgumentParser) -> None:
@@ -84,8 +36,6 @@ def _security_flags(p: argparse.ArgumentParser, binds: bool) -> None:
 
 def _security(args: argparse.Namespace):
     """The Security of a role's flags; a --keys folder that is not there is refused by name."""
-    from pathlib import Path
-
     from higher_dist.wire.security import Security
 
     if args.keys is not None and not Path(args.keys).is_dir():
@@ -118,9 +68,6 @@ def cluster_main(argv: list[str] | None = None) -> int:
         if args.actors is None:
             args.actors = default_actors()
         cfg = config_from_args(args)
-        import time
-        from pathlib import Path
-
         run_dir = args.run_dir or time.strftime(f"runs/{cfg.preset}-{cfg.world.name}-s{cfg.seed}-%Y%m%d-%H%M%S")
         if not args.resume and (Path(run_dir) / "learner.ckpt").exists():
             raise ConfigError(f"--run-dir {run_dir} already holds a run: add --resume to continue it, "
@@ -142,7 +89,6 @@ def learner_main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     def go() -> int:
-        from higher_dist.config import from_dict
         from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints
         from higher_dist.roles.learner import run_learner
 
@@ -164,7 +110,7 @@ def learner_main(argv: list[str] | None = None) -> int:
 def _role_flags(p: argparse.ArgumentParser, binds: bool = False) -> None:
     p.add_argument("--learner", required=True, help="the learner's control endpoint, tcp://HOST:PORT")
     _security_flags(p, binds=binds)
-    p.add_argument("--threads", type=_positive_int, default=None, help="torch threads (default: the run's)")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: the run's)")
 
 
 def relabeler_main(argv: list[str] | None = None) -> int:
@@ -225,7 +171,7 @@ def run_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-run", description="All components in one process (debugging, tests).")
     add_config_flags(p)
     p.add_argument("--run-dir", required=True)
-    p.add_argument("--metrics-every", type=_positive_int, default=10_000, help="frames between metric lines")
+    p.add_argument("--metrics-every", type=positive_int, default=10_000, help="frames between metric lines")
     args = p.parse_args(argv)
 
     def go() -> int:
@@ -256,9 +202,15 @@ def bench_main(argv: list[str] | None = None) -> int:
 
 
 def plot_main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) == 1 and (Path(argv[0]) / "plan.json").is_file():
+        # A higher-reproduce folder: the paper's figures (mean and one std over seeds) and results.md.
+        from higher_dist.reproduce.cli import report
+
+        return report(Path(argv[0]))
     from higher_dist.plot import main
 
-    return main(sys.argv[1:] if argv is None else argv)
+    return main(argv)
 
 
 def reproduce_main(argv: list[str] | None = None) -> int:

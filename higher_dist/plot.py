@@ -1,7 +1,7 @@
 """higher-plot RUN_DIR [RUN_DIR ...] --out DIR: figures from runs' metrics.jsonl.
 
 Each run directory holds config.json ("preset", "seed", "world": {"name": ...}) and metrics.jsonl
-(one record every couple of seconds, see higher_dist/roles/dashboard_view.py for the keys). A
+(one record every couple of seconds, see docs/metrics.md for the keys). A
 directory without metrics.jsonl but with run subdirectories (runs/ holding runs/a, runs/b) is expanded
 to those runs. Runs that share a preset are seeds of one method: their curves are interpolated onto a
 common frames grid and drawn as a mean with a min-max band.
@@ -13,123 +13,25 @@ generator_accuracy.png (when a generator was trained) and replay_composition.png
 frame, exploring and greedy success with standard errors, the generator's dataset, gate and accuracies)
 and prints the same as a Markdown table.
 
-Given a `higher-reproduce` folder (one holding plan.json), it draws that plan's figures instead (mean and
-one standard deviation over seeds, into DIR/figures) and rewrites DIR/results.md.
+Given a `higher-reproduce` folder (one holding plan.json), the `higher-plot` command (cli.py) hands it to
+`higher_dist.reproduce.cli.report` instead: that plan's figures and DIR/results.md.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import defaultdict
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from higher_dist import metrics as m
-
-GRID_POINTS = 200
-REPLAY_KEYS = (("replay_success", "success", "tab:green"), ("replay_wrong_pick", "wrong pick", "tab:red"),
-               ("replay_timeout", "time-out", "tab:olive"), ("replay_relabelled", "relabelled", "tab:cyan"))
-
-
-class NoRun(Exception):
-    """A directory given on the command line holds no run."""
-
-
-@dataclass
-class Run:
-    path: Path
-    preset: str
-    seed: Any
-    world: str
-    records: list[dict[str, Any]] = field(default_factory=list)
-
-    @property
-    def label(self) -> str:
-        return f"{self.preset} seed {self.seed}" if self.seed is not None else f"{self.preset} ({self.path.name})"
-
-    def series(self, key: str) -> tuple[np.ndarray, np.ndarray]:
-        """(frames, values) for the records where both are numbers, sorted by frames."""
-        pts = [(r.get(m.FRAMES), r.get(key)) for r in self.records]
-        pts = [(float(f), float(v)) for f, v in pts if _num(f) and _num(v)]
-        pts.sort()
-        if not pts:
-            return np.empty(0), np.empty(0)
-        arr = np.asarray(pts)
-        return arr[:, 0], arr[:, 1]
-
-    def has(self, key: str) -> bool:
-        return any(_num(r.get(key)) for r in self.records)
-
-
-def _num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
-
-
-def load_run(path: Path) -> Run:
-    from higher_dist.rundir import read_metrics  # imports torch: only pay for it once we have a run
-
-    metrics = path / "metrics.jsonl"
-    if not metrics.is_file():
-        raise NoRun(f"higher-plot: {path} holds no run (no metrics.jsonl)")
-    records = [r for r in read_metrics(metrics) if isinstance(r, dict)]
-    if not records:
-        raise NoRun(f"higher-plot: {path} holds no run (metrics.jsonl has no records)")
-    config: dict[str, Any] = {}
-    try:
-        config = json.loads((path / "config.json").read_text())
-    except (OSError, json.JSONDecodeError):
-        pass  # an interrupted run may lack it; the records carry preset and world too
-    world = config.get("world")
-    world_name = world.get("name") if isinstance(world, dict) else records[-1].get(m.WORLD)
-    preset = config.get("preset") or records[-1].get(m.PRESET) or path.name
-    return Run(path, str(preset), config.get("seed"), str(world_name or "-"), records)
-
-
-def find_runs(paths: list[str]) -> list[Run]:
-    runs = []
-    for p in map(Path, paths):
-        if not (p / "metrics.jsonl").is_file() and p.is_dir():
-            children = sorted(c for c in p.iterdir() if (c / "metrics.jsonl").is_file())
-            if children:
-                runs.extend(load_run(c) for c in children)
-                continue
-        runs.append(load_run(p))
-    return runs
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")  # files only, no display: must come before pyplot is imported
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def success_key(run: Run) -> str:
-    """Greedy evaluation on training goals when the run has it; otherwise the training success."""
-    return m.SUCCESS_EVAL_TRAIN if run.has(m.SUCCESS_EVAL_TRAIN) else m.SUCCESS_TRAIN
-
-
-def mean_band(curves: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """(grid, mean, min, max) of several seeds' curves over the frames they all cover, or None."""
-    curves = [(x, y) for x, y in curves if len(x) > 0]
-    if not curves:
-        return None
-    start, stop = max(x[0] for x, _ in curves), min(x[-1] for x, _ in curves)
-    if stop <= start:
-        return None  # no common range: interpolating would be extrapolation
-    grid = np.linspace(start, stop, GRID_POINTS)
-    ys = np.stack([np.interp(grid, x, y) for x, y in curves])
-    return grid, ys.mean(axis=0), ys.min(axis=0), ys.max(axis=0)
-
+from higher_dist.analysis.drawing import pyplot
+from higher_dist.analysis.runs import (REPLAY_KEYS, NoRun, Run, find_runs, is_number, mean_band, replay_fractions,
+                                      success_key)
 
 def plot_success(runs: list[Run], key_for, title: str, out: Path) -> Path:
-    plt = _pyplot()
+    plt = pyplot()
     by_preset: dict[str, list[Run]] = defaultdict(list)
     for run in runs:
         by_preset[run.preset].append(run)
@@ -155,7 +57,7 @@ def plot_success(runs: list[Run], key_for, title: str, out: Path) -> Path:
 
 
 def plot_generator(runs: list[Run], out: Path) -> Path:
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 5))
     for i, run in enumerate(runs):
         colour = f"C{i % 10}"
@@ -172,25 +74,8 @@ def plot_generator(runs: list[Run], out: Path) -> Path:
     return _save(fig, out)
 
 
-def replay_fractions(run: Run) -> tuple[np.ndarray, np.ndarray]:
-    """(frames, fractions[4, T]) of the replay's origins, for records that report them."""
-    frames, rows = [], []
-    for r in sorted((r for r in run.records if _num(r.get(m.FRAMES))), key=lambda r: r[m.FRAMES]):
-        counts = [r.get(k) for k, _, _ in REPLAY_KEYS]
-        if not any(_num(c) for c in counts):
-            continue
-        counts = [float(c) if _num(c) and c > 0 else 0.0 for c in counts]
-        total = sum(counts)
-        if total > 0:
-            frames.append(float(r[m.FRAMES]))
-            rows.append([c / total for c in counts])
-    if not rows:
-        return np.empty(0), np.empty((len(REPLAY_KEYS), 0))
-    return np.asarray(frames), np.asarray(rows).T
-
-
 def plot_replay(runs: list[Run], out: Path) -> Path:
-    plt = _pyplot()
+    plt = pyplot()
     with_data = [(run, *replay_fractions(run)) for run in runs]
     with_data = [d for d in with_data if len(d[1])] or [(runs[0], np.empty(0), np.empty((4, 0)))]
     n = len(with_data)
@@ -245,12 +130,12 @@ def curve_rows(run: Run) -> list[dict[str, str]]:
         last_eval = evaluation
         row = {}
         for column, key, digits in CURVE_COLUMNS:
-            value = r.get(key) if key else (r.get(m.UPDATES, 0) / r[m.FRAMES] if _num(r.get(m.FRAMES)) and r[m.FRAMES] else None)
+            value = r.get(key) if key else (r.get(m.UPDATES, 0) / r[m.FRAMES] if is_number(r.get(m.FRAMES)) and r[m.FRAMES] else None)
             if isinstance(value, bool):  # the gate: 1 open, 0 closed
                 value = int(value)
-            if key == m.ELAPSED_S and _num(value):
+            if key == m.ELAPSED_S and is_number(value):
                 value = value / 60
-            row[column] = "" if not _num(value) else f"{float(value):.{digits}f}"
+            row[column] = "" if not is_number(value) else f"{float(value):.{digits}f}"
         rows.append(row)
     return rows
 
@@ -282,18 +167,13 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--table", action="store_true",
                         help="also write each run's curve at its evaluations as OUT/NAME.csv and print it")
     args = parser.parse_args(argv)
-    if len(args.runs) == 1 and (Path(args.runs[0]) / "plan.json").is_file():
-        # A higher-reproduce folder: the paper's figures (mean and one std over seeds) and results.md.
-        from higher_dist.reproduce.cli import report
-
-        return report(Path(args.runs[0]))
     try:
         runs = find_runs(args.runs)
     except NoRun as e:
         print(e, file=sys.stderr)
         return 2
     try:
-        _pyplot()
+        pyplot()
     except ImportError:
         print("higher-plot: matplotlib is missing; pip install 'higher-dist[plot]'", file=sys.stderr)
         return 2

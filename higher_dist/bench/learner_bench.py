@@ -146,7 +146,8 @@ def lever_rows() -> list[Lever]:
 def make_core(batch_size: int, lever: Lever, cfg=None, threads: int = 1):
     """A LearnerCore with a full replay of synthetic episodes, its loss compiled when the lever says so.
     Returns (core, seconds spent compiling or None)."""
-    from higher_dist.config import make_config, override
+    from higher_dist.config import override
+    from higher_dist.config_presets import make_config
     from higher_dist.learning.learner_core import LearnerCore
 
     cfg = cfg or make_config("higher", "paper")
@@ -190,7 +191,7 @@ def time_updates(core, seconds: float, warmup: int = 5, bf16: bool = False) -> d
 def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmup: int = 5) -> float:
     """Updates/s of the learner alone, through the same path as in the cluster (LearnerCore.update,
     with the config's levers, compiled before timing)."""
-    from higher_dist.config import make_config
+    from higher_dist.config_presets import make_config
 
     cfg = cfg or make_config("higher", "paper")
     d = cfg.dqn

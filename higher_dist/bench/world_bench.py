@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from higher_dist.config import world_by_name
+from higher_dist.config_presets import world_by_name
 from higher_dist.world.grid import N_ACTIONS, BatchedFetchAttr
 
 MINIGRID_ENV_ID = "MiniGrid-Fetch-8x8-N3-v0"

@@ -16,7 +16,7 @@ from higher_dist.config import Config
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate_goal_sets
 from higher_dist.learning.exploration import Explorer, actor_epsilons
 from higher_dist.learning.learner_core import LearnerCore
-from higher_dist.learning.relabel import RelabelStrategy, make_relabeler
+from higher_dist.learning.hindsight.relabel import RelabelStrategy, make_relabeler
 from higher_dist.world.spec import WorldSpec
 
 

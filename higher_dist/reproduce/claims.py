@@ -16,16 +16,15 @@ from pathlib import Path
 import numpy as np
 
 from higher_dist import metrics as m
+from higher_dist.config_presets import world_by_name
 from higher_dist.reproduce.figures import EVAL_HELDOUT, EVAL_TRAIN, Group, final_stats, generator_results, load_groups
-from higher_dist.reproduce.plan import NOISE_LEVELS, PAPER_FRAMES, PAPER_SEEDS, TRIGGER_PAIRS, Plan
+from higher_dist.reproduce.plan import NOISE_LEVELS, PAPER_FRAMES, PAPER_SEEDS, TRIGGER_PAIRS, Plan, check_configs
+from higher_dist.world.grid import BatchedFetchAttr
 
 
 def random_success(world: str, envs: int = 2000, seed: int = 0) -> float:
     """Success of a uniformly random policy, one episode per environment (so short episodes do not
     count more than long ones)."""
-    from higher_dist.config import world_by_name
-    from higher_dist.world.grid import BatchedFetchAttr
-
     env = BatchedFetchAttr(world_by_name(world), envs, seed=seed)
     env.reset()
     rng = np.random.default_rng(seed)
@@ -205,8 +204,6 @@ def method_table(plan: Plan) -> list[str]:
 
 def _eval_episodes(plan: Plan) -> int:
     """Greedy episodes per goal set of the plan's runs, from their configs as higher-cluster builds them."""
-    from higher_dist.reproduce.plan import check_configs
-
     return min((c.eval.episodes for c in check_configs(plan).values()), default=0) or 1
 
 

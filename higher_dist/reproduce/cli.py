@@ -10,7 +10,11 @@ from pathlib import Path
 
 from higher_dist.config import WORLDS, ConfigError
 from higher_dist.reproduce import plan as plan_mod
+from higher_dist.reproduce.claims import write_results
+from higher_dist.reproduce.executor import Executor
+from higher_dist.reproduce.figures import draw_all
 from higher_dist.reproduce.status import estimate, human_seconds
+from higher_dist.reproduce.view import make_view
 
 
 def _positive(text: str) -> int:
@@ -82,9 +86,6 @@ def _main(args: argparse.Namespace, argv: list[str]) -> int:
         return 0
     _lock(out)
     recorded = plan_mod.merge_and_write(plan)
-    from higher_dist.reproduce.executor import Executor
-    from higher_dist.reproduce.view import make_view
-
     _, _, rates = estimate(plan, plan.runs, spis, parallel)
     view = make_view()
     view.event(f"plan written to {out / 'plan.json'}: {len(plan.runs)} runs, {parallel} at once")
@@ -142,9 +143,6 @@ def print_plan(plan: plan_mod.Plan, spis: dict[str, float], parallel: int) -> No
 
 
 def report(out: Path) -> int:
-    from higher_dist.reproduce.claims import write_results
-    from higher_dist.reproduce.figures import draw_all
-
     recorded = plan_mod.read_plan(out)
     figures = draw_all(recorded)
     path = write_results(recorded, figures)

@@ -13,6 +13,7 @@ curve never steps back.
 """
 from __future__ import annotations
 
+import json
 import shutil
 import signal
 import subprocess
@@ -27,7 +28,7 @@ from higher_dist import metrics as m
 from higher_dist.launch.topology import free_base_port
 from higher_dist.reproduce.plan import GENERATOR_EVAL_PAIRS, Plan, RunSpec
 from higher_dist.reproduce.status import frames_done, human_seconds, last_record, run_state
-from higher_dist.rundir import atomic_write_bytes, read_metrics
+from higher_dist.rundir import RunDir, atomic_write_bytes, read_metrics
 
 STOP_GRACE_S = 60.0  # a cluster's roles get 20 s each to checkpoint; the supervisor waits for them
 POLL_S = 0.5
@@ -49,15 +50,11 @@ def generator_argv(run: RunSpec, run_dir: Path) -> list[str]:
 def trim_metrics_to_checkpoint(run_dir: Path) -> int:
     """Drop metrics recorded after the learner's checkpoint (they will be recorded again); returns the
     checkpoint's frames."""
-    from higher_dist.rundir import RunDir
-
     state = RunDir(run_dir).load_checkpoint("learner")
     frames = int(state["core"]["counters"]["frames"]) if state else 0
     records = read_metrics(run_dir / "metrics.jsonl")
     kept = [r for r in records if isinstance(r.get("frames"), (int, float)) and r["frames"] <= frames]
     if len(kept) != len(records):
-        import json
-
         atomic_write_bytes(run_dir / "metrics.jsonl", "".join(json.dumps(r) + "\n" for r in kept).encode())
     return frames
 

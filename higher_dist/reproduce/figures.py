@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from higher_dist.plot import REPLAY_KEYS, GRID_POINTS, NoRun, Run, _num, _pyplot, load_run, replay_fractions
-from higher_dist.reproduce.plan import GENERATOR_PAIRS, NOISE_LEVELS, TRIGGER_PAIRS, Plan
-
 from higher_dist import metrics as m
+from higher_dist.analysis.drawing import pyplot
+from higher_dist.analysis.runs import GRID_POINTS, REPLAY_KEYS, NoRun, Run, is_number, load_run, replay_fractions
+from higher_dist.reproduce.plan import GENERATOR_PAIRS, NOISE_LEVELS, TRIGGER_PAIRS, Plan
 
 EVAL_TRAIN, EVAL_HELDOUT = m.SUCCESS_EVAL_TRAIN, m.SUCCESS_EVAL_HELDOUT
 MAIN_VARIANTS = ("dqn", "her", "higher", "reward")
@@ -91,7 +91,7 @@ def final_stats(group: Group | None, key: str) -> dict | None:
 
 
 def _figure(title: str, xlabel: str, ylabel: str):
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=SIZE)
     ax.set(title=title, xlabel=xlabel, ylabel=ylabel, ylim=(-0.02, 1.02))
     ax.grid(alpha=0.3)
@@ -137,7 +137,7 @@ def draw_all(plan: Plan) -> dict[str, Path]:
         if _curves(ax, main, key):
             written[name] = _save(fig, ax, out / f"{name}.png")
         else:
-            _pyplot().close(fig)
+            pyplot().close(fig)
     generator_groups = [g for g in groups.values() if g.variant.startswith("higher")
                         and any(r.has(m.GENERATOR_VAL_ACCURACY) for r in g.runs)]
     if generator_groups:
@@ -161,7 +161,7 @@ def draw_all(plan: Plan) -> dict[str, Path]:
 
 def replay_figure(groups: list[Group], path: Path) -> Path:
     """Mean replay composition by origin over seeds, one panel per method."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(groups), figsize=(2.6 * len(groups) + 0.6, 3.0), squeeze=False, sharey=True)
     for ax, group in zip(axes[0], groups):
         data = [replay_fractions(r) for r in group.runs]
@@ -204,7 +204,7 @@ def generator_figure(results: dict[int, list[dict]], path: Path) -> Path:
     fig, ax = _figure("Generator from expert pairs", "expert training pairs", "exact match")
     pairs = list(results)
     for i, (key, label) in enumerate((("seen_exact_match", "seen goals"), ("unseen_exact_match", "unseen goals"))):
-        values = [[r[key] for r in results[n] if _num(r.get(key))] for n in pairs]
+        values = [[r[key] for r in results[n] if is_number(r.get(key))] for n in pairs]
         ax.errorbar(pairs, [np.mean(v) for v in values], yerr=[np.std(v) for v in values], marker="o",
                     capsize=3, color=f"C{i}", label=label)
     ax.set_xticks(list(GENERATOR_PAIRS))

@@ -1,6 +1,6 @@
 """One run of the `generator` experiment: the instruction generator trained on N expert pairs, measured
 on fresh pairs with seen (training) and unseen (held-out) goals. It is the generator benchmark's path
-(`higher_dist.bench.generator_bench.run`), with the generator's config taken from the run's profile
+(`higher_dist.learning.hindsight.generator_measure.measure_generator`), with the generator's config taken from the run's profile
 (the flags after `--`, as higher-cluster would read them). Writes OUT/result.json atomically at the end;
 an interrupted measurement has no checkpoint and starts again (about a minute)."""
 from __future__ import annotations
@@ -12,9 +12,9 @@ from pathlib import Path
 
 import torch
 
-from higher_dist.bench.generator_bench import run
-from higher_dist.cli import add_config_flags, config_from_args
 from higher_dist.config import ConfigError
+from higher_dist.config_flags import add_config_flags, config_from_args
+from higher_dist.learning.hindsight.generator_measure import measure_generator
 from higher_dist.rundir import atomic_write_bytes
 
 
@@ -38,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"higher-reproduce generator run: error: {e}", file=sys.stderr)
         return 2
     torch.set_num_threads(cfg.torch_threads)
-    result = run(args.pairs, args.steps, args.seed, cfg.world, args.eval_pairs, cfg=cfg.generator)
+    result = measure_generator(args.pairs, args.steps, args.seed, cfg.world, args.eval_pairs, cfg=cfg.generator)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out / "result.json", json.dumps(result, indent=2).encode())

@@ -20,6 +20,8 @@ from pathlib import Path
 from typing import Any
 
 from higher_dist.config import Config, ConfigError
+from higher_dist.config_flags import add_config_flags, config_from_args
+from higher_dist.config_presets import make_config
 from higher_dist.rundir import atomic_write_bytes
 
 EXPERIMENTS = ("main", "noise", "trigger", "generator")
@@ -168,8 +170,6 @@ def _add(by_name: dict[str, RunSpec], names: list[str], spec: RunSpec) -> None:
 
 def _eval_every(world: str, frames: int) -> int | None:
     """A greedy evaluation interval that gives a short run EVALS_PER_RUN points; None keeps the config's."""
-    from higher_dist.config import make_config
-
     default = make_config("dqn", world).eval.every_frames
     wanted = max(500, frames // EVALS_PER_RUN)
     return wanted if wanted < default else None
@@ -178,8 +178,6 @@ def _eval_every(world: str, frames: int) -> int | None:
 def check_configs(plan: Plan) -> dict[str, Config]:
     """Every run's config, built exactly as higher-cluster will build it: a bad --set or value is
     refused now, naming it, rather than in the middle of the plan."""
-    from higher_dist.cli import add_config_flags, config_from_args
-
     parser = argparse.ArgumentParser("higher-reproduce", add_help=False)
     add_config_flags(parser)
     configs: dict[str, Config] = {}

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from higher_dist.config import WorldConfig, world_by_name
+from higher_dist.config import WorldConfig
+from higher_dist.config_presets import world_by_name
 from higher_dist.world import language
 from higher_dist.world.grid import N_ACTIONS, BatchedFetchAttr
 

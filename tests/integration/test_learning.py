@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from higher_dist.config import make_config
+from higher_dist.config_presets import make_config
 from higher_dist.learning.acting import EpisodeCollector
 from higher_dist.learning.episode import SUCCESS
 from higher_dist.learning.runner import SingleProcessRunner

@@ -17,7 +17,7 @@ import pytest
 import zmq
 
 from hd_harness import Proc, RunWatch, entry
-from higher_dist.config import make_config
+from higher_dist.config_presets import make_config
 from higher_dist.launch.topology import Endpoints, free_base_port
 from higher_dist.learning.samples import real_episodes
 from higher_dist.wire import codec

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from higher_dist.config import make_config, small_world
+from higher_dist.config_presets import make_config, small_world
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate
 from higher_dist.learning.dqn import DQNLearner
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK

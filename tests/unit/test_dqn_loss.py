@@ -455,7 +455,7 @@ def test_learning_rate_falls_linearly_to_its_end_fraction_then_stays(frames, exp
 
 def test_the_learner_core_steps_with_the_scheduled_learning_rate() -> None:
     """The optimiser's lr follows the learner's frame count (original episodes only), update by update."""
-    from higher_dist.config import make_config
+    from higher_dist.config_presets import make_config
     from higher_dist.learning.acting import EpisodeCollector
     from higher_dist.learning.learner_core import LearnerCore
 

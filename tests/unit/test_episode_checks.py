@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from higher_dist.config import make_config
+from higher_dist.config_presets import make_config
 from higher_dist.learning.learner_core import LearnerCore
 from higher_dist.learning.samples import real_episodes
 from higher_dist.wire import WireError, decode, encode, pack_episodes, unpack_episodes

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from higher_dist.bench.generator_bench import make_pairs
+from higher_dist.learning.hindsight.generator_measure import make_pairs
 from higher_dist.config import GeneratorConfig, WorldConfig
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
-from higher_dist.learning.generator import GeneratorTrainer, InstructionGenerator, decoder_targets
-from higher_dist.learning.generator_data import GeneratorDataset, semantic_accuracy, validation_flags
+from higher_dist.learning.hindsight.generator import GeneratorTrainer, InstructionGenerator, decoder_targets
+from higher_dist.learning.hindsight.generator_data import GeneratorDataset, semantic_accuracy, validation_flags
 from higher_dist.world.language import BEG, END, MISSION_LEN, PAD, VOCAB, encode, expert_tokens
 
 torch.set_num_threads(1)
@@ -182,7 +182,7 @@ def test_generate_handles_empty_input_and_expert_tokens_parse():
 def test_greedy_decoding_sees_only_a_few_batch_shapes():
     """The relabeler decodes batches of every size; padding them to powers of two keeps the CPU kernels'
     per-shape caches (and with them the relabeler's memory) bounded."""
-    from higher_dist.learning.generator import EVAL_CHUNK, inference_batch
+    from higher_dist.learning.hindsight.generator import EVAL_CHUNK, inference_batch
 
     trainer = GeneratorTrainer(SMALL, seed=0)
     seen = []

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from higher_dist.plot import main, mean_band
+from higher_dist.analysis.runs import mean_band
+from higher_dist.plot import main
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from higher_dist.cli import add_config_flags, config_from_args
-from higher_dist.bench.generator_bench import make_pairs
-from higher_dist.config import ConfigError, WorldConfig, from_dict, make_config
-from higher_dist.learning.generator import GeneratorTrainer, InstructionGenerator
+from higher_dist.config_flags import add_config_flags, config_from_args
+from higher_dist.learning.hindsight.generator_measure import make_pairs
+from higher_dist.config import ConfigError, WorldConfig, from_dict
+from higher_dist.config_presets import make_config
+from higher_dist.learning.hindsight.generator import GeneratorTrainer, InstructionGenerator
 from higher_dist.rundir import RunDir
 
 

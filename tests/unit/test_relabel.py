@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from higher_dist.bench.generator_bench import make_pairs
-from higher_dist.config import GeneratorConfig, WorldConfig, make_config
+from higher_dist.learning.hindsight.generator_measure import make_pairs
+from higher_dist.config import GeneratorConfig, WorldConfig
+from higher_dist.config_presets import make_config
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
-from higher_dist.learning.relabel import (ExpertRelabel, LearnedRelabel, NoisyExpertRelabel, RelabelStrategy,
+from higher_dist.learning.hindsight.relabel import (ExpertRelabel, LearnedRelabel, NoisyExpertRelabel, RelabelStrategy,
                                           make_relabeler)
 from higher_dist.rundir import RunDir
 from higher_dist.world.language import VOCAB, expert_tokens, parse
@@ -232,7 +233,7 @@ def test_factory_builds_each_preset_strategy():
 
 
 def test_relabel_accuracy_is_over_the_recent_window_and_the_total_is_reported_beside_it():
-    from higher_dist.learning.relabel import RECENT_RELABELS
+    from higher_dist.learning.hindsight.relabel import RECENT_RELABELS
     space = ObjectSpace(WorldConfig())
     rng = np.random.default_rng(2)
     view = np.zeros((7, 7, 4), np.uint8)

@@ -116,7 +116,7 @@ def test_random_policy_success_is_measured_one_episode_per_env():
 
 
 def test_higher_plot_on_a_plan_folder_draws_the_plans_figures_and_table(tmp_path):
-    from higher_dist.plot import main as plot_main
+    from higher_dist.cli import plot_main  # the higher-plot command
 
     plan = build(tmp_path, ("main",), seeds=2, methods=["dqn"], frames=1000)
     plan_mod.merge_and_write(plan)

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from higher_dist.config import ConfigError, WorldConfig, from_dict, make_config, override, small_world, validate
+from higher_dist.config import ConfigError, WorldConfig, from_dict, override, validate
+from higher_dist.config_presets import make_config, small_world
 from higher_dist.learning.agent import AgentBuilder, Cadence, GeneratorPace, Seeds, train_generator
 from higher_dist.learning.learner_core import LearnerCore
 from higher_dist.learning.rate_limiter import SamplesPerInsertLimiter

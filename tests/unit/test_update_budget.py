@@ -3,10 +3,11 @@ import numpy as np
 import pytest
 import torch
 
-from higher_dist.config import ConfigError, make_config
+from higher_dist.config import ConfigError
+from higher_dist.config_presets import make_config
 from higher_dist.learning.acting import EpisodeCollector
 from higher_dist.learning.learner_core import LearnerCore
-from higher_dist.learning.relabel import make_relabeler
+from higher_dist.learning.hindsight.relabel import make_relabeler
 
 
 def feed(preset, episodes, **overrides):

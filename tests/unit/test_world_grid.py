@@ -4,7 +4,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from higher_dist.config import WorldConfig, small_world
+from higher_dist.config import WorldConfig
+from higher_dist.config_presets import small_world
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK
 from higher_dist.world.grid import (KIND_BALL, KIND_EMPTY, KIND_KEY, KIND_UNSEEN, KIND_WALL, RUNNING,
                                     BatchedFetchAttr, cell_attrs, object_cells)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import higher_dist  # noqa: F401  registers the ids
-from higher_dist.config import small_world
+from higher_dist.config_presets import small_world
 from higher_dist.learning.episode import SUCCESS
 from higher_dist.world import language
 from higher_dist.world.grid import BatchedFetchAttr

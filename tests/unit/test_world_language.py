@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from higher_dist.config import COLORS, SHADES, SIZES, TYPES, WorldConfig, small_world
+from higher_dist.config import COLORS, SHADES, SIZES, TYPES, WorldConfig
+from higher_dist.config_presets import small_world
 from higher_dist.world.language import (BEG, END, MISSION_LEN, N_VARIANTS, PAD, PREFIXES, VOCAB, WORD_TO_ID,
                                         decode, describe, encode, expert_tokens, mission_tokens, noisy_attrs,
                                         parse, with_markers)

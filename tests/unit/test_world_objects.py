@@ -4,7 +4,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from higher_dist.config import WorldConfig, small_world
+from higher_dist.config import WorldConfig
+from higher_dist.config_presets import small_world
 from higher_dist.world.objects import ObjectSpace
 
 

@@ -21,7 +21,7 @@ from torch import nn
 
 from higher_dist.config import GeneratorConfig
 from higher_dist.learning.episode import Episode
-from higher_dist.learning.generator_data import GeneratorDataset, parse_many, semantic_accuracy
+from higher_dist.learning.hindsight.generator_data import GeneratorDataset, parse_many, semantic_accuracy
 from higher_dist.learning.networks import ViewEncoder
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 from higher_dist.world.language import BEG, END, PAD

@@ -23,8 +23,8 @@ import numpy as np
 
 from higher_dist.config import Config, GeneratorConfig
 from higher_dist.learning.episode import WRONG_PICK, Episode
-from higher_dist.learning.generator import GeneratorTrainer
-from higher_dist.learning.generator_data import parse_many
+from higher_dist.learning.hindsight.generator import GeneratorTrainer
+from higher_dist.learning.hindsight.generator_data import parse_many
 from higher_dist.world.language import expert_tokens, noisy_attrs
 from higher_dist.world.objects import ObjectSpace
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec

@@ -1,0 +1,95 @@
+"""The paper's methods (presets), the two worlds and the two profiles, as functions that make a Config.
+
+`make_config(preset, world, profile, **overrides)` is the one way a run's config is made: the dataclass
+defaults of config.py, then the world's and the preset's settings, then the profile, then `--set`
+overrides by dotted name. docs/decisions.md says why each setting here was chosen.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+from higher_dist.config import (PRESETS, PROFILES, WORLDS, Config, ConfigError, EvalConfig, RelabelConfig,
+                                WorldConfig, from_dict, override)
+
+
+def small_world() -> WorldConfig:
+    """A world small enough to learn in CPU minutes: tests and smoke runs."""
+    return WorldConfig(
+        name="small", room_size=5, n_objects=2, colors=("red", "green"), types=("key", "ball"),
+        shades=("neutral",), sizes=("medium",), max_steps=20, heldout_count=2,
+    )
+
+
+def world_by_name(name: str) -> WorldConfig:
+    if name == "paper":
+        return WorldConfig()
+    if name == "small":
+        return small_world()
+    raise ConfigError(f"world: unknown world {name!r}; choose one of {', '.join(WORLDS)}")
+
+
+def make_config(preset: str = "higher", world: str = "paper", profile: str = "default",
+                **overrides: Any) -> Config:
+    """The config of one of the paper's methods on a named world under a profile; any field may then
+    be overridden by dotted name."""
+    if preset not in PRESETS:
+        raise ConfigError(f"preset: unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if profile not in PROFILES:
+        raise ConfigError(f"profile: unknown profile {profile!r}; choose one of {', '.join(PROFILES)}")
+    w = world_by_name(world)
+    relabel = {
+        "dqn": RelabelConfig("none"), "reward": RelabelConfig("none"), "her": RelabelConfig("expert"),
+        "noisy-her": RelabelConfig("noisy", 0.2), "higher": RelabelConfig("learned"),
+    }[preset]
+    if preset == "reward":
+        w = replace(w, reward_shaping=True)
+    cfg = Config(preset=preset, world=w, relabel=relabel)
+    if world == "small":
+        # The small world has few goals: the generator learns them from a few dozen pairs, and the
+        # replay fills in seconds. Its runs (tests, smoke runs) last seconds to minutes: compiling the
+        # loss would cost more CPU than it saves.
+        cfg = replace(
+            cfg,
+            dqn=replace(cfg.dqn, batch_size=64, lr=5e-4, target_period=500, compile=False),
+            generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=50.0, eval_every_updates=50),
+            replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
+            exploration=replace(cfg.exploration, decay_frames=50_000),
+            eval=EvalConfig(every_frames=10_000, episodes=32),
+            frames=200_000, envs_per_actor=16,
+        )
+    else:
+        cfg = PAPER_WORLD_TUNING.get(preset, lambda c: c)(cfg)
+    if profile == "paper":
+        cfg = paper_profile(cfg)
+    cfg = override(cfg, **overrides)
+    cfg = from_dict(cfg.to_dict())  # types first: --set dqn.lr=fast is refused, not a TypeError
+    return cfg
+
+
+def _higher_on_the_paper_world(cfg: Config) -> Config:
+    # Measured (docs/decisions.md): with the generator gated at 1000 pairs and the plain Ape-X ladder,
+    # HIGhER had 295 pairs at 421k frames and never relabelled; its generator passes 0.5 exact match
+    # near 150-200 pairs. Every slot starting at epsilon 1.0 (random picks succeed ~5% of the time:
+    # ~1.8 pairs per 1000 frames) and a 100-pair minimum behind the accuracy gate opened it at 88k.
+    return replace(cfg, generator=replace(cfg.generator, n_min=100),
+                   exploration=replace(cfg.exploration, warmup_frames=200_000))
+
+
+# Per-preset settings measured on the paper world, applied on top of the dataclass defaults.
+PAPER_WORLD_TUNING = {"higher": _higher_on_the_paper_world}
+PAPER_DECAY_FRAMES = {"higher": 400_000}  # the paper's linear epsilon span; 100_000 for the others
+
+
+def paper_profile(cfg: Config) -> Config:
+    """The paper's settings on top of a preset (DESIGN.md section 7): the generator without the
+    front-cell shortcut, used ungated from 1000 pairs, and epsilon linear from 1.0 to 0.05 over 1e5
+    frames (4e5 for HIGhER). Its replay ratio (128 samples per frame, batch 128) and terminal
+    time-outs stay options (docs/paper_settings.md): on a 2-core machine the first costs ~16x the
+    learner time per frame."""
+    return replace(
+        cfg, profile="paper",
+        generator=replace(cfg.generator, front_cell_shortcut=False, n_min=1000, min_accuracy=0.0),
+        exploration=replace(cfg.exploration, kind="linear", eps_start=1.0, eps_end=0.05,
+                            decay_frames=PAPER_DECAY_FRAMES.get(cfg.preset, 100_000)),
+    )
