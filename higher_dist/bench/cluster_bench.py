@@ -20,7 +20,9 @@ from pathlib import Path
 
 import psutil
 
+from higher_dist.launch.layout import available_cores, plan_layout
 from higher_dist.launch.topology import free_base_port
+from higher_dist.learning.devices import resolve_device
 from higher_dist.rundir import read_metrics
 
 ROLE_MARKERS = {"learner_main": "learner", "relabeler_main": "relabeler", "actor_main": "actor",
@@ -96,8 +98,11 @@ def measure_cluster(seconds: float, preset: str, world: str, actors: int | None,
     updates = end["updates"] - start["updates"]
     config = json.loads((run_dir / "config.json").read_text())
     batch = config["dqn"]["batch_size"]
+    layout = plan_layout(available_cores(), config["actors"], str(resolve_device(config["device"])),
+                         config["torch_threads"])
     return {
         "preset": preset, "world": world, "seconds": round(dt, 1), "actors": config["actors"],
+        "layout": end.get("layout"), "learner_threads": layout.learner_threads,
         "envs_per_actor": config["envs_per_actor"], "batch_size": batch,
         "frames_per_s": round(frames / dt, 1), "updates_per_s": round(updates / dt, 2),
         "samples_per_frame": round(updates * batch / max(frames, 1), 2),
@@ -121,7 +126,9 @@ def main(argv: list[str] | None = None) -> int:
     result = measure_cluster(args.seconds, args.preset, args.world, args.actors, args.envs_per_actor, args.extra)
     from higher_dist.bench.learner_bench import measure_updates_per_s
 
-    alone = measure_updates_per_s(result["batch_size"], args.learner_seconds)
+    # The learner alone on as many threads as the cluster's layout gave it: the ratio is then the cost of
+    # the system around the learner, not of a different thread count.
+    alone = measure_updates_per_s(result["batch_size"], args.learner_seconds, threads=result["learner_threads"])
     result["learner_alone_updates_per_s"] = round(alone, 2)
     result["learner_ratio"] = round(result["updates_per_s"] / alone, 3) if alone else None
     print(f"cluster benchmark: preset {result['preset']} on the {result['world']} world, "

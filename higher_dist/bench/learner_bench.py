@@ -152,7 +152,7 @@ def make_core(batch_size: int, lever: Lever, cfg=None, threads: int = 1):
 
     cfg = cfg or make_config("higher", "paper")
     cfg = override(cfg, **{"dqn.batch_size": batch_size, "replay.capacity": 100_000, **lever.dqn_overrides()})
-    torch.set_num_threads(threads)
+    torch.set_num_threads(max(1, threads))
     core = LearnerCore(cfg)
     rng = np.random.default_rng(0)
     pool = [synthetic_episode(rng, int(rng.integers(5, cfg.world.max_steps + 1))) for _ in range(64)]
@@ -188,14 +188,15 @@ def time_updates(core, seconds: float, warmup: int = 5, bf16: bool = False) -> d
     return {"samples_per_s": n * b / wall, "cpu_samples_per_s": n * b / cpu, "updates_per_s": n / wall}
 
 
-def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmup: int = 5) -> float:
+def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmup: int = 5, threads: int = 1) -> float:
     """Updates/s of the learner alone, through the same path as in the cluster (LearnerCore.update,
-    with the config's levers, compiled before timing)."""
+    with the config's levers, compiled before timing), on `threads` torch threads."""
     from higher_dist.config_presets import make_config
 
     cfg = cfg or make_config("higher", "paper")
     d = cfg.dqn
-    core, _ = make_core(batch_size, Lever("config", d.compile, d.joint_online, d.prefetch), cfg, cfg.torch_threads)
+    core, _ = make_core(batch_size, Lever("config", d.compile, d.joint_online, d.prefetch), cfg,
+                        cfg.torch_threads or threads)
     try:
         return time_updates(core, seconds, warmup)["updates_per_s"]
     finally:

@@ -10,20 +10,23 @@ import sys
 import time
 from pathlib import Path
 
-# (name, argv, [(label, key, target or None)])
+# (name, argv, [(label, key, target or None)]); a negative target is an upper bound (-3: at most 3).
 PLAN = [
     ("world", ["world"], [("world steps/s, B=64", "b64_steps_per_s", 50_000),
                           ("world / minigrid, B=64", "ratio_b64", 20)]),
     ("learner", ["learner"], [("learner updates/s, B=64", "b64_updates_per_s", None),
                               ("learner samples/s, B=64", "b64_samples_per_s", None),
-                              ("learner samples/s, B=256", "b256_samples_per_s", None)]),
+                              ("learner samples/s, B=256", "b256_samples_per_s", 25_000)]),
     ("wire", ["wire"], [("wire episodes/s, PUSH/PULL", "pushpull_episodes_per_s", None)]),
     ("generator", ["generator", "--pairs", "5000"], [("generator seen exact match", "seen_exact_match", 0.9),
                                                      ("generator unseen exact match", "unseen_exact_match", 0.8)]),
-    ("cluster", ["cluster", "--seconds", "60"], [("cluster env frames/s", "frames_per_s", 1500),
+    ("cluster", ["cluster", "--seconds", "60"], [("cluster env frames/s", "frames_per_s", 2500),
                                                  ("cluster updates/s", "updates_per_s", None),
                                                  ("cluster samples/frame", "samples_per_frame", None),
                                                  ("learner_ratio", "learner_ratio", 0.8)]),
+    # The longest: one her run until 40% and 60% (the mean of three evaluations), 25 minutes at most.
+    ("time-to-success", ["time-to-success", "--preset", "her", "--targets", "0.4", "0.6", "--max-minutes", "25"],
+     [("her minutes to 40%", "minutes_to_40", -3), ("her minutes to 60%", "minutes_to_60", -15)]),
 ]
 
 
@@ -64,13 +67,18 @@ def main(argv: list[str] | None = None) -> int:
         (out / f"{name}.json").write_text(json.dumps(result, indent=2))
         for label, key, target in keys:
             value = result.get(key)
-            verdict = "" if target is None or value is None else ("meets" if value >= target else "SHORT")
+            if target is None:
+                verdict = ""
+            elif value is None:
+                verdict = "SHORT" if target < 0 else ""
+            else:
+                verdict = "meets" if (value <= -target if target < 0 else value >= target) else "SHORT"
             summary.append((label, value, target, verdict))
     print("\nsummary (this machine)")
     print(f"{'figure':<34}{'value':>14}{'target':>12}  verdict")
     for label, value, target, verdict in summary:
         v = "-" if value is None else (f"{value:,.3f}" if isinstance(value, float) and value < 10 else f"{value:,.0f}")
-        t = "" if target is None else f">= {target:,}"
+        t = "" if target is None else (f"<= {-target:,}" if target < 0 else f">= {target:,}")
         print(f"{label:<34}{v:>14}{t:>12}  {verdict}")
     if failed:
         print(f"failed: {', '.join(failed)}", file=sys.stderr)

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from higher_dist.config import Config
 from higher_dist.launch.channels import check_binds
+from higher_dist.launch.layout import Layout, available_cores, plan_layout
 from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, check_free, claim_ports, parse_endpoint
 from higher_dist.rundir import RunDir, read_metrics
 from higher_dist.wire.security import Security
@@ -47,19 +48,20 @@ class RoleProcess:
             out.close()  # the child holds its own descriptor
 
 
-def default_actors() -> int:
-    """Actors that fit this machine beside the learner and the relabeler: half the cores, 1 to 8. On
-    2 cores the learner's updates bound the frame rate anyway (docs/benchmarks.md), and one actor with
-    all the environments costs less CPU than two."""
-    return max(1, min(8, (os.cpu_count() or 2) // 2))
-
-
 def _cli(role: str, *args: str) -> list[str]:
     return [sys.executable, "-c", f"import sys; from higher_dist.cli import {role}_main as m; sys.exit(m())", *args]
 
 
+def host_layout(cfg: Config) -> Layout:
+    """This host's layout for the run: its cores, the config's actors, the learner's device resolved."""
+    from higher_dist.learning.devices import resolve_device  # torch: only when a cluster starts
+
+    return plan_layout(available_cores(), cfg.actors, str(resolve_device(cfg.device)), cfg.torch_threads)
+
+
 def build_roles(cfg: Config, run_dir: RunDir, endpoints: Endpoints, resume: bool, dashboard: bool,
-                security: Security, bind_host: str | None = None) -> list[RoleProcess]:
+                security: Security, bind_host: str | None = None, layout: Layout | None = None) -> list[RoleProcess]:
+    layout = layout or plan_layout(available_cores(), cfg.actors, "cpu", cfg.torch_threads)
     logs = run_dir.path / "logs"
     logs.mkdir(exist_ok=True)
     requested = run_dir.path / "config.requested.json"
@@ -69,13 +71,15 @@ def build_roles(cfg: Config, run_dir: RunDir, endpoints: Endpoints, resume: bool
     binding = (["--bind-host", bind_host] if bind_host else []) + (["--insecure"] if security.insecure else [])
     learner = _cli("learner", "--config", str(requested), "--run-dir", str(run_dir.path),
                    "--host", host, "--port-base", str(port), *keys, *binding,
+                   "--threads", str(layout.learner_threads), "--layout", layout.describe(),
                    *(["--resume"] if resume else []))
     relabeler = _cli("relabeler", "--learner", endpoints.control, "--state-dir", str(run_dir.path),
-                     *keys, *binding, *(["--resume"] if resume else []))
+                     "--threads", str(layout.relabeler_threads), *keys, *binding, *(["--resume"] if resume else []))
     roles = [RoleProcess("learner", learner, logs / "learner.log"),
              RoleProcess("relabeler", relabeler, logs / "relabeler.log")]
     for i in range(cfg.actors):
-        argv = _cli("actor", "--learner", endpoints.control, "--actor-id", str(i), *keys)
+        argv = _cli("actor", "--learner", endpoints.control, "--actor-id", str(i),
+                    "--threads", str(layout.actor_threads), *keys)
         roles.append(RoleProcess(f"actor{i}", argv, logs / f"actor{i}.log"))
     if dashboard:
         roles.append(RoleProcess("dashboard", _cli("dashboard", "--learner", endpoints.control, *keys),
@@ -184,8 +188,9 @@ def run_local_cluster(cfg: Config, run_dir: str, resume: bool = False, dashboard
             claim.close()
         raise
     dashboard = dashboard and sys.stdout.isatty()
-    sup = Supervisor(build_roles(cfg, rd, endpoints, resume, dashboard, security, bind_host), max_restarts, rd,
-                     quiet=dashboard)
+    layout = host_layout(cfg)
+    sup = Supervisor(build_roles(cfg, rd, endpoints, resume, dashboard, security, bind_host, layout), max_restarts,
+                     rd, quiet=dashboard)
     stop_requested = []
 
     def on_signal(signum, _frame):
@@ -193,7 +198,7 @@ def run_local_cluster(cfg: Config, run_dir: str, resume: bool = False, dashboard
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     sup.say(f"run dir {rd.path}; control {endpoints.control}; {cfg.actors} actors x {cfg.envs_per_actor} envs; "
-            f"preset {cfg.preset} on the {cfg.world.name} world; {cfg.frames} frames")
+            f"preset {cfg.preset} on the {cfg.world.name} world; {cfg.frames} frames; layout: {layout.describe()}")
     sup.start_all()
     last_print, seen = 0.0, 0
     try:

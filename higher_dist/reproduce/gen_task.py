@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"higher-reproduce generator run: error: {e}", file=sys.stderr)
         return 2
-    torch.set_num_threads(cfg.torch_threads)
+    torch.set_num_threads(cfg.torch_threads or 1)
     result = measure_generator(args.pairs, args.steps, args.seed, cfg.world, args.eval_pairs, cfg=cfg.generator)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -22,6 +22,7 @@ from typing import Any
 from higher_dist.config import Config, ConfigError
 from higher_dist.config_flags import add_config_flags, config_from_args
 from higher_dist.config_presets import make_config
+from higher_dist.launch import layout
 from higher_dist.rundir import atomic_write_bytes
 
 EXPERIMENTS = ("main", "noise", "trigger", "generator")
@@ -110,7 +111,13 @@ def default_parallel() -> int:
 
 
 def default_actors(parallel: int) -> int:
-    return max(1, min(8, (os.cpu_count() or 2) // (2 * parallel)))
+    return layout.default_actors(max(1, layout.available_cores() // parallel))
+
+
+def learner_threads(parallel: int, actors: int) -> int:
+    """Each of `parallel` runs lays out its share of the cores, not the whole machine (oversubscribed
+    learners would each slow the others down)."""
+    return layout.plan_layout(max(1, layout.available_cores() // parallel), actors).learner_threads
 
 
 def build_plan(out: str | os.PathLike, experiments: list[str], seeds: int, frames: int, world: str,
@@ -125,7 +132,7 @@ def build_plan(out: str | os.PathLike, experiments: list[str], seeds: int, frame
         raise ConfigError("--seeds, --frames, --parallel and --generator-steps must be >= 1")
     actors = actors or default_actors(parallel)
     eval_every = _eval_every(world, frames)
-    common = [x for s in sets for x in ("--set", s)]
+    common = ["--threads", str(learner_threads(parallel, actors)), *(x for s in sets for x in ("--set", s))]
     by_name: dict[str, RunSpec] = {}
     order: dict[str, list[str]] = {}
     tables = {"main": MAIN, "noise": NOISE, "trigger": TRIGGER}

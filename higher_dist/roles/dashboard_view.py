@@ -308,6 +308,8 @@ def header(state: DashboardState, now: float | None = None) -> RenderableType:
                 f"  elapsed {fmt_duration(r.get('elapsed_s'))}")
     if state.garbage_frames:
         line.append(f"  garbage frames {state.garbage_frames}", style="yellow")
+    if r.get(m.LAYOUT):
+        line = Group(line, Text(f"layout  {r.get(m.LAYOUT)}", style="dim"))
     age = state.age_s(now)
     if age is None:
         banner = Text(f"waiting for telemetry{' from ' + state.source if state.source else ''} ...",

@@ -7,14 +7,16 @@ import sys
 
 def test_time_to_success_runs_the_cluster_to_its_frame_cap(tmp_path):
     cmd = [sys.executable, "-c", "import sys; from higher_dist.bench import main; sys.exit(main(sys.argv[1:]))",
-           "time-to-success", "--preset", "her", "--world", "small", "--target", "1.0", "--frames-cap", "6000",
+           "time-to-success", "--preset", "her", "--world", "small", "--targets", "0.99", "1.0", "--frames-cap", "6000",
            "--max-minutes", "4", "--eval-every", "2000", "--eval-episodes", "8", "--",
            "--actors", "1", "--envs-per-actor", "8", "--set", "replay.min_size=200", "--set", "dqn.batch_size=16"]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
     result = json.loads(out.stdout.strip().splitlines()[-1])
-    assert result["stop"] == "frames cap", result
-    assert result["frames"] >= 6000 and result["seconds"] > 0
-    assert result["evaluations"] >= 1 and 0.0 <= result["best_eval"] <= 1.0
-    assert set(result["levels"]) == {"0.1", "0.2", "0.4", "1"}
-    assert result["batch_size"] == 16 and result["compile"] is False
+    assert result["targets"] == [0.99, 1.0] and len(result["runs"]) == 1
+    run = result["runs"][0]
+    assert run["stop"] == "frames cap", run
+    assert run["frames"] >= 6000 and run["seconds"] > 0 and run["frames_per_s"] > 0
+    assert run["evaluations"] >= 1 and 0.0 <= run["best_eval"] <= 1.0
+    assert set(run["levels"]) == {"online", "averaged"} and set(run["levels"]["online"]) == {"0.99", "1"}
+    assert run["batch_size"] == 16 and run["layout"] and "learner" in run["layout"]

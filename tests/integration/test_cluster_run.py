@@ -79,6 +79,15 @@ def test_the_last_record_holds_greedy_success_of_the_online_and_the_averaged_wei
     assert last["eval_frames"] >= BUDGET  # the end-of-run evaluation
 
 
+def test_the_records_name_the_hosts_layout(finished_run):
+    from higher_dist.launch.layout import available_cores, plan_layout
+    from higher_dist.learning.devices import resolve_device
+
+    expected = plan_layout(available_cores(), 2, str(resolve_device("auto"))).describe()
+    assert finished_run.records[-1]["layout"] == expected
+    assert f"layout: {expected}" in finished_run.watch.log("cluster")
+
+
 def test_the_learner_updates(finished_run):
     last = finished_run.records[-1]
     assert last["updates"] > 0

@@ -19,35 +19,38 @@ def test_unknown_benchmark_is_refused_with_the_known_names(capsys):
     assert "'nope'" in err and all(name in err for name in COMMANDS)
 
 
-def test_time_to_success_finds_the_first_evaluation_at_each_level():
+def test_time_to_success_needs_the_mean_of_three_evaluations_at_the_level():
     from higher_dist.bench.time_to_success_bench import crossings
 
-    records = [{"frames": 1000, "time": 110.0},  # no evaluation yet
-               {"frames": 25_000, "time": 130.0, "success_rate_eval_train": 0.05},
-               {"frames": 50_000, "time": 150.0, "success_rate_eval_train": 0.25},
-               {"frames": 75_000, "time": 170.0, "success_rate_eval_train": 0.15},
-               {"frames": 100_000, "time": 190.0, "success_rate_eval_train": 0.41}]
-    found = crossings(records, [0.1, 0.2, 0.4, 0.5], launched=100.0)
-    assert found[0.1] == {"frames": 50_000, "seconds": 50.0, "success": 0.25}
-    assert found[0.2]["frames"] == 50_000  # one evaluation can cross two levels
-    assert found[0.4] == {"frames": 100_000, "seconds": 90.0, "success": 0.41}
-    assert 0.5 not in found
+    records = [{"frames": 1000, "elapsed_s": 10.0},  # no evaluation yet
+               {"frames": 25_000, "elapsed_s": 30.0, "success_rate_eval_train": 0.05},
+               {"frames": 30_000, "eval_frames": 25_000, "elapsed_s": 35.0,
+                "success_rate_eval_train": 0.05},  # the same evaluation again
+               {"frames": 50_000, "elapsed_s": 50.0, "success_rate_eval_train": 0.65},  # one lucky evaluation
+               {"frames": 75_000, "elapsed_s": 70.0, "success_rate_eval_train": 0.35},
+               {"frames": 100_000, "elapsed_s": 90.0, "success_rate_eval_train": 0.44},
+               {"frames": 125_000, "elapsed_s": 110.0, "success_rate_eval_train": 0.70}]
+    found = crossings(records, [0.2, 0.4, 0.5, 0.8])
+    # Means: (0.05, 0.65, 0.35) = 0.35 at 75k; (0.65, 0.35, 0.44) = 0.48 at 100k; (0.35, 0.44, 0.70) = 0.497.
+    assert found[0.2] == {"frames": 75_000, "seconds": 70.0, "success": 0.35}
+    assert found[0.4] == {"frames": 100_000, "seconds": 90.0, "success": 0.48}
+    assert 0.5 not in found and 0.8 not in found
+
+
+def test_time_to_success_counts_each_evaluation_once_by_its_frames():
+    from higher_dist.bench.time_to_success_bench import evaluations
+
+    records = [{"frames": 60_000, "eval_frames": 50_000, "elapsed_s": 20.0, "success_rate_eval_train": 0.5},
+               {"frames": 70_000, "eval_frames": 50_000, "elapsed_s": 25.0, "success_rate_eval_train": 0.5}]
+    assert evaluations(records) == [{"frames": 50_000, "success": 0.5, "seconds": 20.0}]
 
 
 def test_time_to_success_refuses_a_target_outside_0_1(capsys):
     import pytest
 
     with pytest.raises(SystemExit):
-        main(["time-to-success", "--target", "40"])
-    assert "--target" in capsys.readouterr().err
-
-
-def test_time_to_success_uses_the_frames_the_evaluated_weights_had_seen():
-    from higher_dist.bench.time_to_success_bench import crossings
-
-    found = crossings([{"frames": 60_000, "eval_frames": 50_000, "time": 20.0, "success_rate_eval_train": 0.5}],
-                      [0.4], launched=0.0)
-    assert found[0.4]["frames"] == 50_000
+        main(["time-to-success", "--targets", "40"])
+    assert "--targets" in capsys.readouterr().err
 
 
 def test_learner_bench_measures_one_lever_row_through_the_replay(capsys):

@@ -21,6 +21,7 @@ from torch import nn
 
 from higher_dist.config import GeneratorConfig
 from higher_dist.learning.episode import Episode
+from higher_dist.learning.devices import resolve_device
 from higher_dist.learning.hindsight.generator_data import GeneratorDataset, parse_many, semantic_accuracy
 from higher_dist.learning.networks import ViewEncoder
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
@@ -156,7 +157,7 @@ class GeneratorTrainer:
     """Model + Adam + dataset, with the gate that says when the generator may relabel."""
 
     def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int = 0, device: str = "cpu"):
-        self.cfg, self.device = cfg, torch.device(device)
+        self.cfg, self.device = cfg, resolve_device(device)
         # A private RNG stream for the initial weights: building a trainer leaves the global torch
         # RNG untouched, and two trainers with one seed start identical.
         with torch.random.fork_rng(devices=[]):
