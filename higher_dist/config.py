@@ -17,179 +17,140 @@ TYPES = ("key", "ball")
 SHADES = ("very_light", "light", "neutral", "dark", "very_dark")
 SIZES = ("tiny", "small", "medium", "large", "giant")
 
-PRESETS = ("dqn", "her", "noisy-her", "higher", "reward")
+PRESETS = ("dqn", "her", "noisy-her", "higher", "reward")  # the paper's methods (config_presets.py)
 WORLDS = ("paper", "small")
+PROFILES = ("default", "paper")  # ours (docs/decisions.md) or the paper's (docs/paper_settings.md)
+FUSIONS = ("film", "concat")
+TARGET_UPDATES = ("period", "polyak")
 RATIO_COUNTS = ("env_frames", "transitions")
-# Profiles apply a whole set of choices on top of a preset and a world (before --set overrides):
-# "default" is ours (docs/decisions.md), "paper" the paper's (docs/paper_settings.md lists every
-# difference, and the paper's settings that stay options).
-PROFILES = ("default", "paper")  # what the samples-per-insert limiter counts as inserts
+EXPLORATION_KINDS = ("apex", "linear")
+RELABEL_STRATEGIES = ("none", "expert", "noisy", "learned")
+# The fields that take one of a few words, by dotted path: `validate` and docs/configuration.md read this.
+CHOICES: dict[str, tuple[str, ...]] = {
+    "preset": PRESETS, "profile": PROFILES, "network.fusion": FUSIONS, "dqn.target_update": TARGET_UPDATES,
+    "replay.ratio_counts": RATIO_COUNTS, "exploration.kind": EXPLORATION_KINDS,
+    "relabel.strategy": RELABEL_STRATEGIES,
+}
 
 
 class ConfigError(ValueError):
     """A config value that cannot work; the message names the field and the reason."""
 
 
+# Every field has one comment line, its meaning: docs/configuration.md is generated from them
+# (`make docs`); why a default is what it is lives in docs/decisions.md.
 @dataclass(frozen=True)
 class WorldConfig:
-    name: str = "paper"
+    name: str = "paper"  # the world's name (paper: 10x10, 10 objects; small: tests)
     room_size: int = 10  # interior cells per side; the outer wall is added around it
-    n_objects: int = 10
-    colors: tuple[str, ...] = COLORS
-    types: tuple[str, ...] = TYPES
-    shades: tuple[str, ...] = SHADES
-    sizes: tuple[str, ...] = SIZES
-    max_steps: int = 40
-    view_size: int = 7
+    n_objects: int = 10  # objects in the room, the goal among them
+    colors: tuple[str, ...] = COLORS  # attribute values this world uses (subsets of the global tables)
+    types: tuple[str, ...] = TYPES  # object types this world uses
+    shades: tuple[str, ...] = SHADES  # shades this world uses
+    sizes: tuple[str, ...] = SIZES  # sizes this world uses
+    max_steps: int = 40  # steps before an episode times out
+    view_size: int = 7  # side of the agent's egocentric view, in cells (odd)
     heldout_count: int = 60  # objects kept out of training goals (paper: 60 of 300)
-    split_seed: int = 0
+    split_seed: int = 0  # seed of the train / held-out split of the objects
     reward_shaping: bool = False  # DQN+reward: 0.25 per matching attribute of the picked object
 
 
 @dataclass(frozen=True)
 class NetworkConfig:
-    # Lean on purpose: the learner must do thousands of samples/s on one CPU thread. A supervised probe
-    # (where is the described object?) scored these sizes within noise of twice-as-wide ones, and FiLM
-    # above concatenation (docs/decisions.md).
-    embed_dim: int = 8  # per-channel value embedding of the 7x7x4 view
-    conv_channels: tuple[int, ...] = (16, 32)
-    frame_stack: int = 4  # memory of the past for partial observability; 1 = none (8: decisions.md round 3)
-    fusion: str = "film"  # film | concat
-    word_embed_dim: int = 16
+    embed_dim: int = 8  # per-channel value embedding of the view
+    conv_channels: tuple[int, ...] = (16, 32)  # channels of the view's conv layers
+    frame_stack: int = 4  # past views stacked into the input (1: none)
+    fusion: str = "film"  # how the instruction meets the view: film | concat
+    word_embed_dim: int = 16  # word embedding of the instruction
     text_hidden: int = 32  # GRU over the instruction
-    hidden: int = 64
-    dueling: bool = True
-    # The head's output layers start scaled by this (biases at zero), so every seed starts with Q ~ 0.
-    # With PyTorch's default init (1.0) the initial Q of a seed ranged from -0.25 to +0.7 on the paper
-    # world; with a target copied every 48k frames that offset decays by only gamma^n per copy, and a
-    # seed starting at +0.6 valued wandering above picking and stalled (docs/decisions.md, round 3).
-    head_init_scale: float = 0.01
+    hidden: int = 64  # width of the Q head's hidden layer
+    dueling: bool = True  # dueling head (value + advantages)
+    head_init_scale: float = 0.01  # the head's output layers start scaled by this, biases at zero (Q ~ 0)
 
 
 @dataclass(frozen=True)
 class DQNConfig:
-    # Tuned on the paper world (docs/decisions.md, "Tuning on the paper world"); the small world keeps
-    # the batch 64 / 5e-4 it was tuned with (make_config).
-    batch_size: int = 256
-    lr: float = 5e-4
-    # > 0: the learning rate falls linearly from lr to lr * lr_end_fraction over this many env frames
-    # (the learner's frame count, the run's one clock, whatever the run's budget), then stays there.
-    # 0: constant lr, the default. A decay over 2M frames lifted HER's greedy success over 1.5M-2M by
-    # 8-17 points but not HIGhER's, which learns later and ended about 20 points behind HER: it favours
-    # the faster method and so confounds the comparison between methods (docs/decisions.md, round 4).
-    lr_decay_frames: int = 0
-    lr_end_fraction: float = 0.1
-    adam_eps: float = 1e-6
-    gamma: float = 0.99
-    n_step: int = 3
-    huber_delta: float = 1.0
-    grad_clip: float = 10.0
-    target_update: str = "period"  # period | polyak
-    # Updates between hard target copies: 1500 at batch 256 and 8 samples per frame is a copy every
-    # 48k env frames. Copies every 5k-16k frames learned half as much per frame on the paper world.
-    target_period: int = 1500
-    polyak_tau: float = 0.005
-    double: bool = True
-    # > 0: the learner also keeps an exponential moving average of the online weights
-    # (avg <- avg + tau * (online - avg) after every update; 1 / tau updates is its memory: 1000 updates,
-    # 32k env frames here) and every greedy evaluation scores it beside the online weights, on the same
-    # goals (`*_averaged` metrics). The actors act with the online weights and the loss never reads the
-    # average. On the paper world it read above the online weights in 8 runs of 2M frames from 500k on
-    # (HER: by 4-13 points from 1M) and swung half as much between evaluations (docs/decisions.md,
-    # round 4). 0: no average.
-    average_tau: float = 0.001
-    # Speed levers, each measured with `higher-bench learner --levers` (docs/benchmarks.md); none
-    # changes the maths. compile: torch.compile the loss (forward + backward), built on a background
-    # thread while eager updates run, eager for good if it fails. joint_online: one online forward over
-    # obs and next_obs stacked. prefetch: sample the next batch on a thread during the update.
-    compile: bool = True
-    joint_online: bool = False
-    prefetch: bool = False
+    batch_size: int = 256  # transitions per update
+    lr: float = 5e-4  # Adam learning rate
+    lr_decay_frames: int = 0  # > 0: lr falls linearly to lr * lr_end_fraction over this many env frames
+    lr_end_fraction: float = 0.1  # where the lr decay ends, as a fraction of lr
+    adam_eps: float = 1e-6  # Adam's epsilon
+    gamma: float = 0.99  # discount per step
+    n_step: int = 3  # steps of the n-step return
+    huber_delta: float = 1.0  # Huber loss threshold
+    grad_clip: float = 10.0  # gradient norm clip
+    target_update: str = "period"  # target network: period (hard copies) | polyak (soft)
+    target_period: int = 1500  # updates between hard target copies
+    polyak_tau: float = 0.005  # soft target step per update (target_update = polyak)
+    double: bool = True  # double DQN targets
+    average_tau: float = 0.001  # > 0: also keep a moving average of the weights, evaluated beside them
+    compile: bool = True  # torch.compile the loss on a background thread (eager until ready, or for good)
+    joint_online: bool = False  # one online forward over obs and next_obs stacked
+    prefetch: bool = False  # sample the next batch on a thread during the update
 
 
 @dataclass(frozen=True)
 class ReplayConfig:
     capacity: int = 200_000  # transitions (frames), FIFO eviction by whole episodes
-    alpha: float = 0.6
-    beta_start: float = 0.4
-    beta_end: float = 1.0
+    alpha: float = 0.6  # priority exponent
+    beta_start: float = 0.4  # importance-sampling exponent at the start
+    beta_end: float = 1.0  # importance-sampling exponent after beta_frames
     beta_frames: int = 5_000_000  # frames over which beta anneals to beta_end
     min_size: int = 2_000  # transitions before learning starts
     samples_per_insert: float = 8.0  # replay ratio kept by the rate limiter (as in Reverb)
-    # What one "insert" of that ratio is. "env_frames": frames of original episodes only, so every
-    # method gets the same updates per env frame (the comparison between methods uses this);
-    # "transitions": every stored transition, relabelled copies included (HER and HIGhER then get up
-    # to ~1.4x the updates of DQN per env frame).
-    ratio_counts: str = "env_frames"
-    # False: a time-out is a truncation and bootstraps from its last frame (correct for a time limit
-    # the agent cannot see). True: stored as terminal, as the paper's code did.
-    timeouts_terminal: bool = False
-    priority_eps: float = 1e-3
-    checkpoint_replay: bool = False
+    ratio_counts: str = "env_frames"  # what one insert is: env_frames (originals only) | transitions
+    timeouts_terminal: bool = False  # True: a time-out is stored as terminal (the paper's code), else it bootstraps
+    priority_eps: float = 1e-3  # added to |TD error| for priorities
+    checkpoint_replay: bool = False  # include the replay in the learner's checkpoint
 
 
 @dataclass(frozen=True)
 class ExplorationConfig:
-    kind: str = "apex"  # apex | linear
+    kind: str = "apex"  # apex: a fixed epsilon per env slot | linear: one decaying epsilon
     eps_base: float = 0.4  # Ape-X: eps_i = eps_base ** (1 + apex_alpha * i / (N - 1))
-    apex_alpha: float = 2.0  # small alpha suits a handful of actors
-    eps_start: float = 1.0  # linear decay (the paper's schedule)
-    eps_end: float = 0.05
-    decay_frames: int = 1_000_000
-    # apex only: every slot starts at epsilon 1.0 and decays linearly to its rung of the ladder over
-    # this many env frames (0: the ladder from the start). Early random picks feed HER its wrong picks
-    # and HIGhER's generator its first successes, while the greedy rungs take over later.
-    warmup_frames: int = 0
-    # Temporally extended exploration, ez-greedy (Dabney et al. 2021): an exploratory action is held
-    # for n steps, n ~ zeta(repeat_mu) capped at repeat_max, so a random walk can cross the room instead
-    # of jittering in place. repeat_max = 1 is plain epsilon-greedy.
-    repeat_max: int = 1
-    repeat_mu: float = 2.0
+    apex_alpha: float = 2.0  # Ape-X: spread of the epsilon ladder
+    eps_start: float = 1.0  # linear: epsilon at frame 0
+    eps_end: float = 0.05  # linear: epsilon after decay_frames
+    decay_frames: int = 1_000_000  # linear: env frames of the decay
+    warmup_frames: int = 0  # apex: every slot decays from 1.0 to its rung over this many env frames (0: none)
+    repeat_max: int = 1  # ez-greedy: an exploratory action is held up to this many steps (1: plain)
+    repeat_mu: float = 2.0  # ez-greedy: the zeta exponent of the hold length
 
 
 @dataclass(frozen=True)
 class GeneratorConfig:
-    embed_dim: int = 16
-    conv_channels: tuple[int, ...] = (32, 64)
-    word_embed_dim: int = 32
-    hidden: int = 128
+    embed_dim: int = 16  # per-channel value embedding of the view
+    conv_channels: tuple[int, ...] = (32, 64)  # channels of the view's conv layers
+    word_embed_dim: int = 32  # word embedding of the decoder
+    hidden: int = 128  # GRU decoder width
     max_len: int = 12  # decoding cap, END included
-    lr: float = 1e-3
-    batch_size: int = 64
+    lr: float = 1e-3  # Adam learning rate
+    batch_size: int = 64  # pairs per update
     capacity: int = 20_000  # (observation, instruction) pairs kept, FIFO
-    val_fraction: float = 0.1
+    val_fraction: float = 0.1  # pairs held out to measure the generator (the gate's input)
     n_min: int = 1000  # gate: pairs needed before relabelling (paper: 1000)
-    # The summed embedding of the cell in front (where a picked object lies) fed straight to the
-    # decoder: ~99% exact match at 5000 pairs, against ~70% for the paper's generator, which has none.
-    front_cell_shortcut: bool = True
+    front_cell_shortcut: bool = True  # feed the cell in front's embedding straight to the decoder
     min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
-    # Training pace, as data: generator updates per 1000 env frames of original episodes. The runner and
-    # the relabeler service both enforce it (learning/agent.GeneratorPace), so the generator's training
-    # per frame does not depend on the machine.
-    # 10/kframe: ~10 updates/s at 1,000 frames/s, a fraction of a core (one update of batch 64 costs
-    # 15-40 ms here), and 5,000 updates by 500k frames, where 1,500 reach 99% exact match on 5,000 pairs.
-    updates_per_kframe: float = 10.0
+    updates_per_kframe: float = 10.0  # generator updates per 1000 env frames of original episodes
     eval_every_updates: int = 200  # validation exact match (the gate's input) every this many updates
 
 
 @dataclass(frozen=True)
 class RelabelConfig:
-    strategy: str = "none"  # none | expert | noisy | learned
+    strategy: str = "none"  # wrong picks relabelled by: none | expert | noisy | learned
     noise_p: float = 0.2  # noisy expert: each attribute swapped to another value with this probability
 
 
 @dataclass(frozen=True)
 class EvalConfig:
-    every_frames: int = 50_000
-    # Per goal set (training and held-out) each time, one per environment (unbiased): 256 puts the
-    # standard error at 3 points or less.
-    episodes: int = 256
+    every_frames: int = 50_000  # env frames between greedy evaluations
+    episodes: int = 256  # greedy episodes per goal set (training, held-out), one per environment
 
 
 @dataclass(frozen=True)
 class Config:
-    preset: str = "higher"
-    profile: str = "default"  # see PROFILES
+    preset: str = "higher"  # the paper's method (see PRESETS)
+    profile: str = "default"  # default (ours) | paper (the paper's settings)
     world: WorldConfig = field(default_factory=WorldConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     dqn: DQNConfig = field(default_factory=DQNConfig)
@@ -198,15 +159,15 @@ class Config:
     generator: GeneratorConfig = field(default_factory=GeneratorConfig)
     relabel: RelabelConfig = field(default_factory=RelabelConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
-    actors: int = 2
-    envs_per_actor: int = 32
+    actors: int = 2  # actor processes
+    envs_per_actor: int = 32  # environments each actor steps together
     frames: int = 5_000_000  # env frames budget of the run
-    seed: int = 0
-    device: str = "cpu"
-    torch_threads: int = 1
+    seed: int = 0  # the run's seed; every component's seed derives from it
+    device: str = "cpu"  # the learner's torch device: cpu or cuda[:N]
+    torch_threads: int = 1  # torch threads per process
     weights_every: int = 20  # learner updates between weight publications
-    stats_every_s: float = 2.0
-    checkpoint_every_s: float = 120.0
+    stats_every_s: float = 2.0  # seconds between stats messages and metrics records
+    checkpoint_every_s: float = 120.0  # seconds between checkpoints
     tensorboard: bool = False  # also write metrics as TensorBoard event files (needs the tensorboard extra)
 
     def to_dict(self) -> dict[str, Any]:
@@ -276,6 +237,12 @@ def _build(cls: Any, data: dict[str, Any], prefix: str) -> Any:
     return cls(**kwargs)
 
 
+def _get_path(obj: Any, path: str) -> Any:
+    for name in path.split("."):
+        obj = getattr(obj, name)
+    return obj
+
+
 def _check(ok: bool, message: str) -> None:
     if not ok:
         raise ConfigError(message)
@@ -312,12 +279,12 @@ def validate_world(w: WorldConfig) -> None:
 
 def validate(cfg: Config) -> None:
     """Refuse a config that cannot work, naming the field."""
-    _check(cfg.preset in PRESETS, f"preset: unknown preset {cfg.preset!r}; choose one of {', '.join(PRESETS)}")
-    _check(cfg.profile in PROFILES, f"profile: unknown profile {cfg.profile!r}; choose one of {', '.join(PROFILES)}")
+    for path, allowed in CHOICES.items():
+        value = _get_path(cfg, path)
+        _check(value in allowed, f"{path}: must be one of {', '.join(allowed)}, got {value!r}")
     validate_world(cfg.world)
     w = cfg.world
     n = cfg.network
-    _check(n.fusion in ("film", "concat"), f"network.fusion: must be film or concat, got {n.fusion!r}")
     _check(n.frame_stack >= 1, f"network.frame_stack: must be >= 1, got {n.frame_stack}")
     _check(n.head_init_scale > 0, f"network.head_init_scale: must be > 0, got {n.head_init_scale}")
     _check(len(n.conv_channels) >= 1, "network.conv_channels: needs at least one layer")
@@ -328,7 +295,6 @@ def validate(cfg: Config) -> None:
     _check(0.0 < d.lr_end_fraction <= 1.0, f"dqn.lr_end_fraction: must be in (0, 1], got {d.lr_end_fraction}")
     _check(0.0 <= d.gamma <= 1.0, f"dqn.gamma: must be in [0, 1], got {d.gamma}")
     _check(d.n_step >= 1, f"dqn.n_step: must be >= 1, got {d.n_step}")
-    _check(d.target_update in ("period", "polyak"), f"dqn.target_update: must be period or polyak, got {d.target_update!r}")
     _check(0.0 < d.polyak_tau <= 1.0, f"dqn.polyak_tau: must be in (0, 1], got {d.polyak_tau}")
     _check(0.0 <= d.average_tau <= 1.0, f"dqn.average_tau: must be in [0, 1] (0: no average), got {d.average_tau}")
     r = cfg.replay
@@ -336,10 +302,7 @@ def validate(cfg: Config) -> None:
     _check(0 < r.min_size <= r.capacity, f"replay.min_size: must be in (0, capacity={r.capacity}], got {r.min_size}")
     _check(r.alpha >= 0 and 0 <= r.beta_start <= 1 and 0 <= r.beta_end <= 1, "replay: alpha >= 0 and betas in [0, 1]")
     _check(r.samples_per_insert > 0, f"replay.samples_per_insert: must be > 0, got {r.samples_per_insert}")
-    _check(r.ratio_counts in RATIO_COUNTS,
-           f"replay.ratio_counts: must be {' or '.join(RATIO_COUNTS)}, got {r.ratio_counts!r}")
     e = cfg.exploration
-    _check(e.kind in ("apex", "linear"), f"exploration.kind: must be apex or linear, got {e.kind!r}")
     _check(0 <= e.eps_base <= 1 and 0 <= e.eps_end <= e.eps_start <= 1, "exploration: epsilons must lie in [0, 1], end <= start")
     _check(e.warmup_frames >= 0, f"exploration.warmup_frames: must be >= 0, got {e.warmup_frames}")
     _check(e.repeat_max >= 1, f"exploration.repeat_max: must be >= 1, got {e.repeat_max}")
@@ -352,8 +315,6 @@ def validate(cfg: Config) -> None:
     _check(g.updates_per_kframe >= 0, f"generator.updates_per_kframe: must be >= 0, got {g.updates_per_kframe}")
     _check(g.eval_every_updates >= 1, f"generator.eval_every_updates: must be >= 1, got {g.eval_every_updates}")
     rl = cfg.relabel
-    _check(rl.strategy in ("none", "expert", "noisy", "learned"),
-           f"relabel.strategy: must be none, expert, noisy or learned, got {rl.strategy!r}")
     _check(0 <= rl.noise_p <= 1, f"relabel.noise_p: must be in [0, 1], got {rl.noise_p}")
     _check(cfg.actors >= 1, f"actors: must be >= 1, got {cfg.actors}")
     _check(cfg.envs_per_actor >= 1, f"envs_per_actor: must be >= 1, got {cfg.envs_per_actor}")

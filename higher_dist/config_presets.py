@@ -29,6 +29,13 @@ def world_by_name(name: str) -> WorldConfig:
     raise ConfigError(f"world: unknown world {name!r}; choose one of {', '.join(WORLDS)}")
 
 
+# What each of the paper's methods relabels its failed episodes with.
+PRESET_RELABEL = {
+    "dqn": RelabelConfig("none"), "reward": RelabelConfig("none"), "her": RelabelConfig("expert"),
+    "noisy-her": RelabelConfig("noisy", 0.2), "higher": RelabelConfig("learned"),
+}
+
+
 def make_config(preset: str = "higher", world: str = "paper", profile: str = "default",
                 **overrides: Any) -> Config:
     """The config of one of the paper's methods on a named world under a profile; any field may then
@@ -38,17 +45,12 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
     if profile not in PROFILES:
         raise ConfigError(f"profile: unknown profile {profile!r}; choose one of {', '.join(PROFILES)}")
     w = world_by_name(world)
-    relabel = {
-        "dqn": RelabelConfig("none"), "reward": RelabelConfig("none"), "her": RelabelConfig("expert"),
-        "noisy-her": RelabelConfig("noisy", 0.2), "higher": RelabelConfig("learned"),
-    }[preset]
+    relabel = PRESET_RELABEL[preset]
     if preset == "reward":
         w = replace(w, reward_shaping=True)
     cfg = Config(preset=preset, world=w, relabel=relabel)
     if world == "small":
-        # The small world has few goals: the generator learns them from a few dozen pairs, and the
-        # replay fills in seconds. Its runs (tests, smoke runs) last seconds to minutes: compiling the
-        # loss would cost more CPU than it saves.
+        # Few goals, runs of seconds to minutes (tests, smoke runs): small batches and buffers, no compile.
         cfg = replace(
             cfg,
             dqn=replace(cfg.dqn, batch_size=64, lr=5e-4, target_period=500, compile=False),
@@ -68,10 +70,7 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
 
 
 def _higher_on_the_paper_world(cfg: Config) -> Config:
-    # Measured (docs/decisions.md): with the generator gated at 1000 pairs and the plain Ape-X ladder,
-    # HIGhER had 295 pairs at 421k frames and never relabelled; its generator passes 0.5 exact match
-    # near 150-200 pairs. Every slot starting at epsilon 1.0 (random picks succeed ~5% of the time:
-    # ~1.8 pairs per 1000 frames) and a 100-pair minimum behind the accuracy gate opened it at 88k.
+    # Enough successes early for the generator's gate to open (docs/decisions.md, "HIGhER's gate").
     return replace(cfg, generator=replace(cfg.generator, n_min=100),
                    exploration=replace(cfg.exploration, warmup_frames=200_000))
 
@@ -82,11 +81,9 @@ PAPER_DECAY_FRAMES = {"higher": 400_000}  # the paper's linear epsilon span; 100
 
 
 def paper_profile(cfg: Config) -> Config:
-    """The paper's settings on top of a preset (DESIGN.md section 7): the generator without the
+    """The paper's settings on top of a preset (docs/paper_settings.md): the generator without the
     front-cell shortcut, used ungated from 1000 pairs, and epsilon linear from 1.0 to 0.05 over 1e5
-    frames (4e5 for HIGhER). Its replay ratio (128 samples per frame, batch 128) and terminal
-    time-outs stay options (docs/paper_settings.md): on a 2-core machine the first costs ~16x the
-    learner time per frame."""
+    frames (4e5 for HIGhER). Its replay ratio and terminal time-outs stay options."""
     return replace(
         cfg, profile="paper",
         generator=replace(cfg.generator, front_cell_shortcut=False, n_min=1000, min_accuracy=0.0),

@@ -25,6 +25,7 @@ from typing import Literal
 
 import zmq
 
+from higher_dist.launch.addresses import bind_address, parse_endpoint
 from higher_dist.wire import sockets
 from higher_dist.wire.security import Security
 
@@ -95,8 +96,6 @@ def check_exposure(binds: dict[str, str], security: Security) -> None:
 
     binds: channel name -> the tcp://HOST:PORT it binds.
     """
-    from higher_dist.launch.topology import parse_endpoint
-
     if security.encrypted:
         return
     exposed = {}
@@ -120,8 +119,6 @@ def check_exposure(binds: dict[str, str], security: Security) -> None:
 def check_binds(endpoints, bind_host: str | None, security: Security, binder: str | None = None) -> None:
     """check_exposure for every channel that `binder` binds (every channel when None), as bound on
     `bind_host`: all exposed ports are named in one refusal, before any socket exists."""
-    from higher_dist.launch.topology import bind_address
-
     check_exposure({name: bind_address(endpoints[name], bind_host) for name, channel in CHANNELS.items()
                     if binder in (None, channel.binder)}, security)
 
@@ -135,8 +132,6 @@ def open_channel(ctx: zmq.Context, name: str, side: Literal["bind", "connect"], 
     Under keys the binder is a CURVE server whose context authenticates clients against the allow-list,
     and a connector a CURVE client; without keys, a bind beyond loopback needs security.insecure.
     """
-    from higher_dist.launch.topology import bind_address
-
     channel = CHANNELS.get(name)
     if channel is None:
         raise ValueError(f"unknown channel {name!r}; the channels are {sorted(CHANNELS)}")

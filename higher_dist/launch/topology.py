@@ -8,17 +8,16 @@ sent in the welcome message (which carries the relabeler's registered address fo
 from __future__ import annotations
 
 import fcntl
-import re
 import socket
 import tempfile
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
+from higher_dist.launch.addresses import bind_address, parse_endpoint  # noqa: F401 - part of this module's API
 from higher_dist.launch.channels import CHANNELS, PORT_SPAN
 
 DEFAULT_HOST = "127.0.0.1"  # loopback only unless the user asks for more
 DEFAULT_BASE_PORT = 5555
-_ENDPOINT = re.compile(r"^tcp://(?P<host>[^:/\s]+|\[[0-9a-fA-F:]+\]):(?P<port>\d{1,5})$")
 
 
 @dataclass(frozen=True)
@@ -62,23 +61,6 @@ class Endpoints:
         for name in (f.name for f in fields(cls)):
             parse_endpoint(d[name])
         return cls(**{f.name: d[f.name] for f in fields(cls)})
-
-
-def parse_endpoint(endpoint: str) -> tuple[str, int]:
-    """('host', port) of a tcp://host:port endpoint, or a ValueError that says what is wrong."""
-    m = _ENDPOINT.match(endpoint or "")
-    if not m:
-        raise ValueError(f"endpoint {endpoint!r} is not of the form tcp://HOST:PORT")
-    port = int(m["port"])
-    if not 1 <= port <= 65535:
-        raise ValueError(f"endpoint {endpoint!r}: port out of range")
-    return m["host"], port
-
-
-def bind_address(endpoint: str, bind_host: str | None = None) -> str:
-    """The address a role binds for an advertised endpoint (optionally on another interface, e.g. *)."""
-    host, port = parse_endpoint(endpoint)
-    return f"tcp://{bind_host or host}:{port}"
 
 
 def free_base_port(host: str = DEFAULT_HOST, span: int = PORT_SPAN, tries: int = 200) -> int:

@@ -18,7 +18,7 @@ from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.exploration import Explorer, epsilon_greedy
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
 from higher_dist.world.grid import BatchedFetchAttr
-from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
+from higher_dist.world.spec import DEFAULT_SPEC, RUNNING, WorldSpec
 
 QFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -40,7 +40,7 @@ class EpisodeCollector:
         self._frames[:, 0] = view
         self.stack = np.repeat(view[:, None], frame_stack, axis=1)
         self.weights_version = 0
-        self.last_outcome = np.full(n_envs, -1, np.int8)  # per env, of the last step; -1: still running
+        self.last_outcome = np.full(n_envs, RUNNING, np.int8)  # per env, of the last step
 
     def observation(self) -> tuple[np.ndarray, np.ndarray]:
         """The policy's input: (B, k, V, V, 4) uint8 frame stacks and (B, L) mission tokens."""
@@ -103,7 +103,7 @@ def act(collector: EpisodeCollector, q_fn: QFunction, eps: np.ndarray, rng: np.r
     choose = explorer or epsilon_greedy  # the same call: (q_values, eps, rng) -> actions
     episodes = collector.step(choose(q_fn(obs, mission), eps, rng))
     if explorer is not None:
-        explorer.episodes_ended(collector.last_outcome >= 0)
+        explorer.episodes_ended(collector.last_outcome != RUNNING)
     return episodes
 
 
@@ -132,12 +132,12 @@ def evaluate(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, episodes
 def _first_episode_successes(collector: EpisodeCollector, q_fn: QFunction, rng: np.random.Generator) -> int:
     """Step every env greedily until each has ended its first episode; count the successes among those."""
     zero = np.zeros(collector.n_envs)
-    first_outcome = np.full(collector.n_envs, -1)
-    while (first_outcome < 0).any():
+    first_outcome = np.full(collector.n_envs, RUNNING)
+    while (first_outcome == RUNNING).any():
         obs, mission = collector.observation()
         collector.step(epsilon_greedy(q_fn(obs, mission), zero, rng))
-        outcome = collector.last_outcome  # RUNNING (-1) where the episode goes on
-        first_outcome = np.where((first_outcome < 0) & (outcome >= 0), outcome, first_outcome)
+        outcome = collector.last_outcome  # RUNNING where the episode goes on
+        first_outcome = np.where((first_outcome == RUNNING) & (outcome != RUNNING), outcome, first_outcome)
     return int((first_outcome == SUCCESS).sum())
 
 

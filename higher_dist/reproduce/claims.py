@@ -20,6 +20,7 @@ from higher_dist.config_presets import world_by_name
 from higher_dist.reproduce.figures import EVAL_HELDOUT, EVAL_TRAIN, Group, final_stats, generator_results, load_groups
 from higher_dist.reproduce.plan import NOISE_LEVELS, PAPER_FRAMES, PAPER_SEEDS, TRIGGER_PAIRS, Plan, check_configs
 from higher_dist.world.grid import BatchedFetchAttr
+from higher_dist.world.spec import N_ACTIONS, RUNNING, SUCCESS
 
 
 def random_success(world: str, envs: int = 2000, seed: int = 0) -> float:
@@ -28,12 +29,12 @@ def random_success(world: str, envs: int = 2000, seed: int = 0) -> float:
     env = BatchedFetchAttr(world_by_name(world), envs, seed=seed)
     env.reset()
     rng = np.random.default_rng(seed)
-    outcome = np.full(envs, -1)
-    while (outcome < 0).any():
-        res = env.step(rng.integers(4, size=envs))
-        first = (outcome < 0) & res.done
+    outcome = np.full(envs, RUNNING)
+    while (outcome == RUNNING).any():
+        res = env.step(rng.integers(N_ACTIONS, size=envs))
+        first = (outcome == RUNNING) & res.done
         outcome[first] = res.outcome[first]
-    return float(np.mean(outcome == 0))
+    return float(np.mean(outcome == SUCCESS))
 
 
 def fmt(stats: dict | None) -> str:

@@ -20,6 +20,7 @@ from higher_dist.launch.channels import open_channel
 from higher_dist.learning.acting import act
 from higher_dist.learning.agent import AgentBuilder
 from higher_dist.roles.client import start_role
+from higher_dist.roles.loop import Every
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.episodes import pack_episodes
 from higher_dist.wire.security import Security
@@ -45,7 +46,8 @@ def run_actor(learner: str, actor_id: int | None = None, security: Security | No
     rng = agent.exploration_rng(idx)
     explorer = agent.explorer(collector.n_envs)
     version, learner_frames, buffer = -1, 0, []
-    frames, last_send, last_stats, t0 = 0, time.time(), time.time(), time.time()
+    frames, t0 = 0, time.time()
+    send_timer, stats = Every(SEND_EVERY_S), Every(cfg.stats_every_s)
     successes, finished = 0, 0
     eps = agent.epsilons(idx, collector.n_envs, 0)
     try:
@@ -72,16 +74,16 @@ def run_actor(learner: str, actor_id: int | None = None, security: Security | No
             finished += len(episodes)
             successes += sum(ep.outcome == SUCCESS for ep in episodes)
             now = time.time()
-            if buffer and (len(buffer) >= collector.n_envs or now - last_send > SEND_EVERY_S):
+            if buffer and (len(buffer) >= collector.n_envs or send_timer.due(now)):
                 fields, arrays = pack_episodes(buffer)
                 out.put(codec.encode("episodes", fields, arrays, sender=f"actor{idx}"))
-                buffer, last_send = [], now
+                buffer = []
+                send_timer.reset(now)
             client.heartbeat({"frames": frames, "weights_version": version})
-            if now - last_stats > cfg.stats_every_s:
+            if stats(now):
                 client.stats({"frames": frames, "frames_per_s": round(frames / max(now - t0, 1e-9), 1),
                               "weights_version": version, "epsilon_mean": round(float(np.mean(eps)), 4),
                               "success_rate": round(successes / max(finished, 1), 4)})
-                last_stats = now
     finally:
         weights_sub.close(linger=0)
         out.socket.close(linger=200)

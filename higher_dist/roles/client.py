@@ -20,6 +20,8 @@ import zmq
 from higher_dist.config import Config, from_dict
 from higher_dist.launch.channels import open_channel
 from higher_dist.launch.topology import Endpoints
+from higher_dist.roles.loop import Every
+from higher_dist.roles.registry import REJECT_STAT_PREFIX
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.security import Security
 from higher_dist.wire.schema import PROTOCOL_VERSION
@@ -27,8 +29,7 @@ from higher_dist.wire.schema import PROTOCOL_VERSION
 
 # The learner's answer to a peer it does not know (it restarted since that peer's hello).
 REJOIN = "unknown peer: say hello first"
-# A role's dropped messages travel in its stats as reject_<reason>: count; the learner sums them by reason.
-REJECT_STAT_PREFIX = "reject_"
+HEARTBEAT_EVERY_S = 1.0
 
 
 class Refused(RuntimeError):
@@ -45,7 +46,7 @@ class ControlClient:
         self.rejects = sockets.RejectCounter()
         self.stop_reason: str | None = None
         self.restarts = int(os.environ.get("HIGHER_RESTARTS", "0"))
-        self._last_heartbeat = 0.0
+        self._heartbeats = Every(HEARTBEAT_EVERY_S, start=0.0)  # the first one goes at once
         self._seq = 0
 
     def send(self, msg_type: str, fields: dict[str, Any]) -> None:
@@ -101,11 +102,11 @@ class ControlClient:
             elif msg.type == "refuse" and msg.fields["reason"] == REJOIN:
                 self.send("hello", self._hello)  # the learner restarted: join it again
 
-    def heartbeat(self, counters: dict[str, float], state: str = "running", every_s: float = 1.0) -> None:
-        now = time.time()
-        if state == "running" and now - self._last_heartbeat < every_s:
+    def heartbeat(self, counters: dict[str, float], state: str = "running") -> None:
+        """At most one heartbeat a period while running; a change of state goes at once."""
+        if state == "running" and not self._heartbeats.due():
             return
-        self._last_heartbeat = now
+        self._heartbeats.reset()
         counters = dict(counters, pid=os.getpid())
         self.send("heartbeat", {"role": self.role, "id": self.index, "state": state,
                                 "counters": {k: float(v) for k, v in counters.items()

@@ -1,7 +1,6 @@
 """The learner role: the head of the cluster.
 
-A short loop around `LearnerCore`: answer control messages (hello -> welcome with the run's config and
-endpoints), take episode batches while the samples-per-insert ratio allows (otherwise the sockets'
+A short loop around `LearnerCore`: answer control messages (roles/control_server.py), take episode batches while the samples-per-insert ratio allows (otherwise the sockets'
 high-water marks push back on the relabeler and the actors), run DQN updates, publish weights, start
 greedy evaluations on a background thread, write metrics and telemetry, checkpoint. Ends when the frame
 budget is reached or on SIGTERM/SIGINT.
@@ -9,7 +8,7 @@ budget is reached or on SIGTERM/SIGINT.
 No input can end the loop: every incoming episode is checked against the run's `WorldSpec` where it is
 unpacked (wire/episodes.py) and dropped, counted by reason, when it fails; an unexpected exception while
 handling one message is logged with the message's type and sender, counted as `handler_error`, and the
-loop goes on. Relabelled episodes are accepted only in messages whose sender is the relabeler: an actor
+loop goes on (roles/loop.HandlerGuard). Relabelled episodes are accepted only in messages whose sender is the relabeler: an actor
 never relabels, so such a claim from anyone else is dropped as `relabel_origin`.
 """
 from __future__ import annotations
@@ -20,7 +19,6 @@ import signal
 import socket
 import time
 
-import numpy as np
 import torch
 import zmq
 
@@ -30,14 +28,14 @@ from higher_dist.config import Config
 from higher_dist.launch.channels import check_binds, open_channel
 from higher_dist.launch.topology import Endpoints
 from higher_dist.learning.agent import AgentBuilder
-from higher_dist.roles.client import REJECT_STAT_PREFIX, REJOIN
+from higher_dist.roles.control_server import ControlServer
 from higher_dist.roles.evaluator import BackgroundEvaluator
-from higher_dist.roles.registry import NoSlot, RateMeter, RoleRegistry
+from higher_dist.roles.loop import Every, HandlerGuard
+from higher_dist.roles.registry import RateMeter, RoleRegistry
 from higher_dist.rundir import RunDir, plain_record
 from higher_dist.wire import codec, sockets
-from higher_dist.wire.security import Security
 from higher_dist.wire.episodes import unpack_episodes
-from higher_dist.wire.schema import PROTOCOL_VERSION
+from higher_dist.wire.security import Security
 
 log = logging.getLogger("higher.learner")
 TELEMETRY_EVERY_S = 0.5
@@ -60,11 +58,9 @@ class LearnerRole:
         self.evaluator = BackgroundEvaluator(self.agent)
         self.registry = RoleRegistry()
         self.rejects = sockets.RejectCounter()
-        self.relabeler_endpoint: str | None = None
-        self.pending_hellos: list[tuple[bytes, int]] = []
+        self.guard = HandlerGuard(self.rejects, log)
         self.weights_version = 0
         self.stop_reason = ""
-        self.handler_errors = 0
         self.started = time.time()
         self.updates_rate = RateMeter()
         if resume:
@@ -76,9 +72,10 @@ class LearnerRole:
         self.rd.write_config(cfg)
         ctx = zmq.Context.instance()
         # With keys, every socket is a CURVE server and only clients on the allow-list get through.
-        self.control, self.experience, self.weights, self.telemetry = (
+        self.control = ControlServer(ctx, cfg, endpoints, self.security, bind_host, self.registry, self.rejects)
+        self.experience, self.weights, self.telemetry = (
             open_channel(ctx, name, "bind", endpoints[name], self.security, bind_host)
-            for name in ("control", "experience", "weights", "telemetry"))
+            for name in ("experience", "weights", "telemetry"))
 
     # -- state --------------------------------------------------------------------------------------
     def _resume(self) -> None:
@@ -99,95 +96,7 @@ class LearnerRole:
                  "elapsed_s": time.time() - self.started, "config": self.cfg.to_dict()}
         self.rd.save_checkpoint("learner", state)
 
-    # -- control ------------------------------------------------------------------------------------
-    def _send(self, identity: bytes, msg_type: str, fields: dict) -> None:
-        # Non-blocking: a peer that does not read its control socket loses this reply; it will ask again.
-        sockets.send_routed(self.control, identity, codec.encode(msg_type, fields, sender="learner"), zmq.NOBLOCK)
-
-    def _welcome(self, identity: bytes, index: int) -> None:
-        eps = self.endpoints
-        if self.relabeler_endpoint is not None:
-            eps = eps.with_endpoint("episodes", self.relabeler_endpoint)
-        self._send(identity, "welcome", {"config": self.cfg.to_dict(), "endpoints": eps.as_dict(),
-                                         "protocol": PROTOCOL_VERSION, "index": index})
-
-    def _capacity(self, role: str) -> int | None:
-        """How many of a role the run has numbers for (actors: the config's count; dashboards: any)."""
-        return {"actor": self.cfg.actors, "relabeler": 1}.get(role)
-
-    def handle_control(self, identity: bytes, msg) -> None:
-        f = msg.fields
-        if msg.type == "hello":
-            if f["protocol"] != PROTOCOL_VERSION:
-                self._refuse_version_to(identity, f["protocol"])
-                return
-            if f["role"] not in ("actor", "relabeler", "dashboard"):
-                self._send(identity, "refuse", {"reason": f"unknown role {f['role']!r}"})
-                return
-            try:
-                index = self.registry.assign(f["role"], identity, f["index"], self._capacity(f["role"]))
-            except NoSlot as e:
-                self._send(identity, "refuse", {"reason": str(e)})
-                return
-            self.registry.hello(f["role"], index, identity, f["host"], f["pid"])
-            if f["role"] == "actor" and self.relabeler_endpoint is None:
-                if (identity, index) not in self.pending_hellos:  # answered once the relabeler registers
-                    self.pending_hellos.append((identity, index))
-            else:
-                self._welcome(identity, index)
-            return
-        info = self.registry.seen(identity)
-        if info is None:
-            # Only a peer that said hello is heard. A role that joined before this learner restarted
-            # is asked to say hello again (the client does so on this reply).
-            self.rejects.add("unknown_peer")
-            self._send(identity, "refuse", {"reason": REJOIN})
-            return
-        if msg.type == "register":  # repeated by the relabeler, so a restarted learner learns it again
-            if info.role != "relabeler":
-                self.rejects.add("field")
-                return
-            try:
-                self.endpoints.with_endpoint("episodes", f["endpoint"])
-            except ValueError:
-                self.rejects.add("field")
-                return
-            self.relabeler_endpoint = f["endpoint"]
-            for ident, index in self.pending_hellos:
-                self._welcome(ident, index)
-            self.pending_hellos.clear()
-        elif msg.type == "heartbeat":
-            info.stopped = f["state"] == "stopping"
-            info.stats.update(f["counters"])
-            info.pid = int(f["counters"].get("pid", info.pid))
-        elif msg.type == "stats":
-            info.stats.update(f["values"])
-            for key in ("success_rate_eval_train", "success_rate_eval_heldout",
-                        "success_rate_eval_train_se", "success_rate_eval_heldout_se"):
-                if f["values"].get(key) is not None:
-                    self.eval[key] = f["values"][key]
-        else:
-            self.rejects.add("unexpected_type")
-
-    def _refuse_version(self, err: codec.WireError, identity: bytes | None) -> None:
-        """A peer of another protocol version cannot be decoded, but it can be told why."""
-        if err.reason == "version" and identity is not None:
-            self._refuse_version_to(identity, err.peer_version)
-
-    def _refuse_version_to(self, identity: bytes, peer_version) -> None:
-        self._send(identity, "refuse", {
-            "reason": f"protocol version mismatch: this learner speaks {PROTOCOL_VERSION}, the peer "
-                      f"speaks {peer_version}; run the same higher-dist version everywhere",
-            "protocol": PROTOCOL_VERSION})
-
-    def poll_control(self, limit: int = 100) -> None:
-        for _ in range(limit):
-            if not self.control.getsockopt(zmq.EVENTS) & zmq.POLLIN:
-                return
-            routed = sockets.recv_routed(self.control, 0, self.rejects, "control", self._refuse_version)
-            if routed is not None:
-                self._guarded(self.handle_control, routed[1], *routed)
-
+    # -- inputs -------------------------------------------------------------------------------------
     def poll_experience(self, limit: int = 4) -> None:
         for _ in range(limit):
             if not self.core.wants_experience():
@@ -200,7 +109,7 @@ class LearnerRole:
             if msg.type != "episodes":
                 self.rejects.add("unexpected_type")
                 continue
-            self._guarded(self.take_episodes, msg, msg)
+            self.guard(msg, self.take_episodes, msg)
 
     def take_episodes(self, msg) -> None:
         try:
@@ -213,16 +122,6 @@ class LearnerRole:
             self.rejects.add(e.reason, e.detail, "experience")
             return
         self.core.add_episodes(episodes)
-
-    def _guarded(self, handler, msg, *args) -> None:
-        """Run one message's handler; an unexpected exception is logged with the message's type and
-        sender, counted, and the loop goes on (no peer can end this process)."""
-        try:
-            handler(*args)
-        except Exception as exc:  # noqa: BLE001 - the point is to survive anything one message does
-            self.handler_errors += 1
-            self.rejects.add("handler_error", f"{msg.type} from {msg.sender!r}: {type(exc).__name__}: {exc}")
-            log.exception("handling a %s message from %r failed; dropped it", msg.type, msg.sender)
 
     # -- outputs ------------------------------------------------------------------------------------
     def publish_weights(self) -> None:
@@ -244,31 +143,14 @@ class LearnerRole:
                 "restarts": int(os.environ.get("HIGHER_RESTARTS", "0")), "rejected": self.rejects.total}
 
     def record(self) -> dict:
-        elapsed = time.time() - self.started
         r = self.core.metrics()
-        roles = [self._own_row()] + self.registry.table(self.weights_version)
-        relabeler = next((i.stats for i in self.registry.roles.values() if i.role == "relabeler"), {})
-        actors = [i for i in self.registry.roles.values() if i.role == "actor"]
-        actor_rows = [row for row in roles if row["role"] == "actor"]
-        actor_fps = [row["frames_per_s"] or 0.0 for row in actor_rows if row["state"] == "alive"]
-        lags = [row["weights_lag"] for row in actor_rows if row["weights_lag"] is not None]
-        eps = [i.stats["epsilon_mean"] for i in actors if i.stats.get("epsilon_mean") is not None]
-        by_reason = self.rejects.counts()
-        for info in self.registry.roles.values():  # the other roles report theirs as reject_<reason>
-            for key, value in info.stats.items():
-                if key.startswith(REJECT_STAT_PREFIX) and isinstance(value, (int, float)):
-                    reason = key[len(REJECT_STAT_PREFIX):]
-                    by_reason[reason] = by_reason.get(reason, 0) + int(value)
         r.update({
-            m.ELAPSED_S: round(elapsed, 1), m.PRESET: self.cfg.preset, m.WORLD: self.cfg.world.name,
-            m.FRAMES_BUDGET: self.cfg.frames, m.WEIGHTS_VERSION: self.weights_version,
-            m.FRAMES_PER_S: round(sum(actor_fps), 1), m.UPDATES_PER_S: round(self.updates_rate(self.core.updates), 2),
-            m.WEIGHTS_LAG_MEAN: round(float(np.mean(lags)), 1) if lags else None,
-            m.REJECTED: sum(by_reason.values()), m.LEARNER_REJECTED: self.rejects.total,
-            m.REJECTS_BY_REASON: by_reason, m.HANDLER_ERRORS: self.handler_errors,
-            **m.relabel_record(relabeler), m.RELABELS_PER_S: relabeler.get("relabels_per_s"),
-            m.EPSILON_MEAN: round(float(np.mean(eps)), 4) if eps else None,
-            **self.evaluator.latest(), m.ROLES: roles,
+            m.ELAPSED_S: round(time.time() - self.started, 1), m.PRESET: self.cfg.preset,
+            m.WORLD: self.cfg.world.name, m.FRAMES_BUDGET: self.cfg.frames, m.WEIGHTS_VERSION: self.weights_version,
+            m.UPDATES_PER_S: round(self.updates_rate(self.core.updates), 2),
+            m.LEARNER_REJECTED: self.rejects.total, m.HANDLER_ERRORS: self.guard.errors,
+            **self.evaluator.latest(),
+            **self.registry.telemetry(self._own_row(), self.weights_version, self.rejects.counts()),
         })
         return plain_record(r)
 
@@ -278,33 +160,31 @@ class LearnerRole:
         for s in (signal.SIGINT, signal.SIGTERM):
             signal.signal(s, lambda *_: stop.append(1))
         self.publish_weights()
-        last_weights = last_tel = last_metrics = last_ckpt = time.time()
+        republish, telemetry = Every(WEIGHTS_REPUBLISH_S), Every(TELEMETRY_EVERY_S)
+        metrics, checkpoints = Every(self.cfg.stats_every_s), Every(self.cfg.checkpoint_every_s)
         poller = zmq.Poller()
-        poller.register(self.control, zmq.POLLIN)
+        poller.register(self.control.sock, zmq.POLLIN)
         poller.register(self.experience, zmq.POLLIN)
         try:
             while not stop and self.core.frames < self.cfg.frames:
                 can_update = self.core.can_update()
                 poller.poll(0 if can_update else 20)
-                self.poll_control()
+                self.control.poll(self.guard)
                 self.poll_experience()
                 before = self.core.updates
                 self.core.train_available(max_updates=4)
                 now = time.time()
-                if self.agent.weights_due(before, self.core.updates) or now - last_weights > WEIGHTS_REPUBLISH_S:
+                if self.agent.weights_due(before, self.core.updates) or republish.due(now):
                     self.publish_weights()
-                    last_weights = now
+                    republish.reset(now)
                 self.maybe_evaluate()
-                if now - last_tel > TELEMETRY_EVERY_S:
-                    last_tel = now
+                if telemetry(now):
                     record = self.record()
                     self.telemetry.send(codec.encode("telemetry", {"record": record}, sender="learner")[0],
                                         flags=zmq.NOBLOCK)
-                    if now - last_metrics > self.cfg.stats_every_s:
-                        last_metrics = now
+                    if metrics(now):
                         self.rd.append_metrics(record)
-                if now - last_ckpt > self.cfg.checkpoint_every_s:
-                    last_ckpt = now
+                if checkpoints(now):
                     self.checkpoint()
             self.stop_reason = "frame budget reached" if not stop else "stopped by signal"
         finally:
@@ -312,8 +192,7 @@ class LearnerRole:
         return 0
 
     def shutdown(self) -> None:
-        for identity in self.registry.identities():
-            self._send(identity, "stop", {"reason": self.stop_reason or "learner exiting"})
+        self.control.stop_all(self.stop_reason or "learner exiting")
         try:
             self.telemetry.send(codec.encode("stop", {"reason": self.stop_reason or "learner exiting"},
                                              sender="learner")[0], flags=zmq.NOBLOCK)
@@ -326,7 +205,8 @@ class LearnerRole:
         record = self.record()
         self.rd.append_metrics(record)
         self.checkpoint()
-        for s in (self.control, self.experience, self.weights, self.telemetry):
+        self.control.close()
+        for s in (self.experience, self.weights, self.telemetry):
             s.close(linger=200)
         self.security.close()
         log.info("learner stopped: %s", self.stop_reason)

@@ -9,12 +9,22 @@ role asking for any number keeps the one its connection already has (a repeated 
 lowest number whose holder is dead or stopped; when every number is held by a live role it is refused.
 The count does not grow: actors cannot join beyond the learner's --actors, because each actor's epsilon
 is placed among that many.
+
+`telemetry` folds the table into the record's cluster-wide fields (frames/s, weights lag, epsilon, the
+relabeler's numbers, rejects by reason over every role).
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
+
+from higher_dist import metrics as m
+
+# A role's dropped messages travel in its stats as reject_<reason>: count; the learner sums them by reason.
+REJECT_STAT_PREFIX = "reject_"
 
 
 @dataclass
@@ -105,6 +115,31 @@ class RoleRegistry:
             })
         return rows
 
+    def telemetry(self, own_row: dict[str, Any], learner_version: int,
+                  own_rejects: dict[str, int]) -> dict[str, Any]:
+        """The record's fields about the cluster: the role table (the learner's own row first) and what
+        is summed or averaged over the roles. `own_rejects`: the learner's rejects by reason."""
+        roles = [own_row] + self.table(learner_version)
+        relabeler = next((i.stats for i in self.roles.values() if i.role == "relabeler"), {})
+        actors = [i for i in self.roles.values() if i.role == "actor"]
+        actor_rows = [row for row in roles if row["role"] == "actor"]
+        actor_fps = [row["frames_per_s"] or 0.0 for row in actor_rows if row["state"] == "alive"]
+        lags = [row["weights_lag"] for row in actor_rows if row["weights_lag"] is not None]
+        eps = [i.stats["epsilon_mean"] for i in actors if i.stats.get("epsilon_mean") is not None]
+        by_reason = dict(own_rejects)
+        for info in self.roles.values():
+            for key, value in info.stats.items():
+                if key.startswith(REJECT_STAT_PREFIX) and isinstance(value, (int, float)):
+                    reason = key[len(REJECT_STAT_PREFIX):]
+                    by_reason[reason] = by_reason.get(reason, 0) + int(value)
+        return {
+            m.FRAMES_PER_S: round(sum(actor_fps), 1),
+            m.WEIGHTS_LAG_MEAN: round(float(np.mean(lags)), 1) if lags else None,
+            m.REJECTED: sum(by_reason.values()), m.REJECTS_BY_REASON: by_reason,
+            **m.relabel_record(relabeler), m.RELABELS_PER_S: relabeler.get("relabels_per_s"),
+            m.EPSILON_MEAN: round(float(np.mean(eps)), 4) if eps else None,
+            m.ROLES: roles,
+        }
 
 
 class RateMeter:

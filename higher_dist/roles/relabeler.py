@@ -21,6 +21,7 @@ import zmq
 from higher_dist.launch.channels import open_channel
 from higher_dist.learning.agent import AgentBuilder, train_generator
 from higher_dist.roles.client import start_role
+from higher_dist.roles.loop import Every, HandlerGuard
 from higher_dist.rundir import RunDir
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.episodes import pack_episodes, unpack_episodes
@@ -97,9 +98,15 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
     inbox = open_channel(ctx, "episodes", "bind", episodes_endpoint, client.security, bind_host)
     outbox = sockets.PendingSend(open_channel(ctx, "experience", "connect", endpoints.experience, client.security))
     client.send("register", {"role": "relabeler", "endpoint": episodes_endpoint})
-    last_stats = last_ckpt = time.time()
+    stats, checkpoints = Every(cfg.stats_every_s), Every(min(CHECKPOINT_EVERY_S, cfg.checkpoint_every_s))
     relabels_window = (time.time(), 0)
-    handler_errors = 0
+    guard = HandlerGuard(client.rejects, log)
+
+    def forward(msg) -> None:
+        frames = service.handle(msg)
+        if frames is not None:
+            outbox.put(frames)
+
     try:
         while not stop and not client.poll():
             # Wait, briefly, rather than spin: a full outbox is the learner holding its replay ratio.
@@ -108,31 +115,22 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
             if not outbox.busy and not service.behind:
                 msg = sockets.recv_message(inbox, WAIT_MS, client.rejects, "episodes")
             if msg is not None and msg.type == "episodes":
-                try:
-                    frames = service.handle(msg)
-                    if frames is not None:
-                        outbox.put(frames)
-                except Exception as exc:  # noqa: BLE001 - no message may end the service
-                    handler_errors += 1
-                    client.rejects.add("handler_error", f"episodes from {msg.sender!r}: {type(exc).__name__}: {exc}")
-                    log.exception("handling an episodes message from %r failed; dropped it", msg.sender)
+                guard(msg, forward, msg)
             elif msg is not None:
                 client.rejects.add("unexpected_type")
             service.train_slice()
             now = time.time()
             client.heartbeat({"episodes": service.received, "relabelled": service.relabelled})
-            if now - last_stats > cfg.stats_every_s:
+            if stats(now):
                 t_w, n_w = relabels_window
                 relabels_per_s = (service.relabelled - n_w) / max(now - t_w, 1e-9)
                 relabels_window = (now, service.relabelled)
                 client.send("register", {"role": "relabeler", "endpoint": episodes_endpoint})
                 client.stats({"episodes": service.received, "relabelled": service.relabelled,
-                              "relabels_per_s": round(relabels_per_s, 2), "handler_errors": handler_errors,
+                              "relabels_per_s": round(relabels_per_s, 2), "handler_errors": guard.errors,
                               "generator_updates_owed": service.pace.owed, **_flat(service.strategy.metrics())})
-                last_stats = now
-            if now - last_ckpt > min(CHECKPOINT_EVERY_S, cfg.checkpoint_every_s):
+            if checkpoints(now):
                 rd.save_checkpoint("relabeler", service.state_dict())
-                last_ckpt = now
     finally:
         rd.save_checkpoint("relabeler", service.state_dict())
         inbox.close(linger=0)

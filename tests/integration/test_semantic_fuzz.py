@@ -1,5 +1,5 @@
 """Nothing a peer sends can kill a role: a real learner and a real relabeler take 10,000 messages that pass
-the codec's schema but are wrong for the run (every class in higher_dist/wire/mutate.py: wrong-length and
+the codec's schema but are wrong for the run (every class in tests/support/mutate.py: wrong-length and
 out-of-vocabulary missions, all-PAD and ungrammatical ones, missions that do not name their goal, attributes
 and cells the world cannot hold, outcomes that contradict rewards, the last action or the pick, relabelled
 copies from actors or contradicting their goal, unknown actor ids, over-long episodes, batches of thousands
@@ -22,7 +22,7 @@ from higher_dist.launch.topology import Endpoints, free_base_port
 from higher_dist.learning.samples import real_episodes
 from higher_dist.wire import codec
 from higher_dist.wire.episodes import pack_episodes
-from higher_dist.wire.mutate import MUTATIONS, Pools, hostile_message
+from support.mutate import MUTATIONS, Pools, hostile_message
 from higher_dist.world.spec import WorldSpec
 
 pytestmark = pytest.mark.slow

@@ -11,7 +11,7 @@ from higher_dist.config_presets import make_config
 from higher_dist.learning.learner_core import LearnerCore
 from higher_dist.learning.samples import real_episodes
 from higher_dist.wire import WireError, decode, encode, pack_episodes, unpack_episodes
-from higher_dist.wire.mutate import MUTATIONS, Pools, hostile_message
+from support.mutate import MUTATIONS, Pools, hostile_message
 from higher_dist.world.spec import WorldSpec
 
 CFG = {name: make_config("her", name, **{"replay.min_size": 50}) for name in ("paper", "small")}

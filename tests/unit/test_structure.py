@@ -1,8 +1,10 @@
-"""The one-place knowledge of issue 9: the world spec, the agent builder (seeds, cadences, generator pace),
-the limiter's tolerance, LearnerCore's counters and the config's override / from_dict / validate."""
+"""The one-place knowledge: the world spec, the agent builder (seeds, cadences, generator pace), the
+limiter's tolerance, LearnerCore's counters, the config's override / from_dict / validate; and the house's
+shape: the import graph's layers and cycles (every import, function-level ones too), and file sizes."""
 from __future__ import annotations
 
 import ast
+import collections
 from dataclasses import replace
 from pathlib import Path
 
@@ -20,7 +22,8 @@ from higher_dist.world.grid import BatchedFetchAttr
 from higher_dist.world.spec import (DEFAULT_SPEC, N_ACTIONS, OUTCOME_NAMES, SUCCESS, TIMEOUT, VIEW_CHANNEL_VALUES,
                                     WRONG_PICK, WorldSpec)
 
-PACKAGE = Path(__file__).resolve().parents[2] / "higher_dist"
+ROOT = Path(__file__).resolve().parents[2]
+PACKAGE = ROOT / "higher_dist"
 
 
 # -- the world spec ---------------------------------------------------------------------------------
@@ -58,18 +61,6 @@ def test_networks_replay_and_generator_read_the_spec():
     strategy = AgentBuilder(cfg).relabeler()
     assert strategy.trainer.model.view_size == 5
     assert strategy.trainer.dataset.views.shape[1:] == (5, 5, 4)
-
-
-def test_layering_world_imports_nothing_from_learning_and_pure_layers_no_transport():
-    for layer in ("world", "learning"):
-        for path in (PACKAGE / layer).glob("*.py"):
-            tree = ast.parse(path.read_text())
-            names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
-            names += [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
-            for name in names:
-                assert not name.startswith(("zmq", "rich", "multiprocessing")), (path, name)
-                if layer == "world":
-                    assert not name.startswith("higher_dist.learning"), (path, name)
 
 
 # -- the builder --------------------------------------------------------------------------------------
@@ -176,3 +167,112 @@ def test_override_from_dict_and_validate_name_the_field():
         validate(override(cfg, **{"generator.updates_per_kframe": -1.0}))
     with pytest.raises(ConfigError, match="replay.min_size"):
         validate(override(cfg, **{"replay.min_size": 0}))
+
+
+# -- the import graph ---------------------------------------------------------------------------------
+
+# Bottom to top. A module may import its own unit (a top-level module, or a folder) and units of lower
+# layers, never a unit of its own layer or above: every arrow points down.
+LAYERS = (
+    ("config", "metrics"),
+    ("config_presets",),
+    ("config_flags",),
+    ("world",),
+    ("learning",),
+    ("wire",),
+    ("rundir",),
+    ("launch",),
+    ("roles",),
+    ("analysis", "render"),
+    ("plot", "reproduce", "bench"),
+    ("cli", "docs_gen"),
+)
+RANK = {unit: i for i, layer in enumerate(LAYERS) for unit in layer}
+PURE = ("world", "learning")  # the algorithm: no transport, no terminal UI, no processes
+NOT_IN_PURE = ("zmq", "rich", "multiprocessing", "psutil", "subprocess", "socket")
+
+
+def _modules() -> dict[str, Path]:
+    mods = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        mods[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return mods
+
+
+def _imports(name: str, path: Path, mods: dict[str, Path]) -> list[str]:
+    """Every module `name` imports, at any depth of its code (function-level imports included)."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+                base = ".".join(package[:len(package) - node.level + 1] + ([node.module] if node.module else []))
+            else:
+                base = node.module or ""
+            out += [f"{base}.{a.name}" if f"{base}.{a.name}" in mods else base for a in node.names]
+    return out
+
+
+def _unit(module: str) -> str:
+    return module.split(".")[1] if module.count(".") else ""
+
+
+def _graph() -> dict[str, set[str]]:
+    mods = _modules()
+    return {name: {t for t in _imports(name, path, mods) if t in mods and t != name} for name, path in mods.items()}
+
+
+def test_every_unit_has_a_layer_and_every_arrow_points_down():
+    graph = _graph()
+    units = {_unit(name) for name in graph} - {""}
+    assert units <= set(RANK), f"give these a layer in LAYERS: {sorted(units - set(RANK))}"
+    upward = [f"{a} -> {b}" for a, targets in graph.items() for b in targets
+              if _unit(a) and _unit(b) and _unit(a) != _unit(b) and RANK[_unit(b)] >= RANK[_unit(a)]]
+    assert not upward, "imports that point up or sideways:\n" + "\n".join(sorted(upward))
+
+
+def test_the_import_graph_has_no_cycles():
+    graph = _graph()
+    state: dict[str, int] = collections.defaultdict(int)  # 0 new, 1 on the path, 2 done
+    cycles = []
+
+    def visit(node: str, path: list[str]) -> None:
+        state[node], path = 1, path + [node]
+        for nxt in sorted(graph[node]):
+            if state[nxt] == 1:  # on the current path: a cycle
+                cycles.append(" -> ".join(path[path.index(nxt):] + [nxt]))
+            elif state[nxt] == 0:
+                visit(nxt, path)
+        state[node] = 2
+
+    for node in sorted(graph):
+        if state[node] == 0:
+            visit(node, [])
+    assert not cycles, "import cycles:\n" + "\n".join(cycles)
+
+
+def test_pure_layers_import_no_transport_and_world_nothing_above_it():
+    mods = _modules()
+    for name, path in mods.items():
+        if _unit(name) in PURE:
+            for target in _imports(name, path, mods):
+                assert not target.startswith(NOT_IN_PURE), (name, target)
+                if _unit(name) == "world":
+                    assert not target.startswith("higher_dist.learning"), (name, target)
+
+
+def test_the_layering_check_sees_function_level_and_relative_imports(tmp_path):
+    path = tmp_path / "probe.py"
+    path.write_text("def f():\n    from higher_dist.cli import main\n    from . import grid\n")
+    mods = {"higher_dist.cli": path, "higher_dist.world.grid": path}
+    assert _imports("higher_dist.world.probe", path, mods) == ["higher_dist.cli", "higher_dist.world.grid"]
+
+
+def test_every_python_file_is_under_400_lines():
+    long = {str(p.relative_to(ROOT)): n for folder in ("higher_dist", "tests") for p in (ROOT / folder).rglob("*.py")
+            if (n := len(p.read_text().splitlines())) >= 400}
+    assert not long, f"split these: {long}"
+

@@ -99,7 +99,7 @@ def test_the_world_works_without_gymnasium():
         "import numpy as np, higher_dist\n"
         "from higher_dist.world import BatchedFetchAttr\n"
         "from higher_dist.world.gym_env import FetchAttrEnv\n"
-        "from higher_dist.config import small_world\n"
+        "from higher_dist.config_presets import small_world\n"
         "assert FetchAttrEnv.__mro__[1] is object\n"
         "env = FetchAttrEnv(small_world()); obs, _ = env.reset(seed=1); env.step(2)\n"
         "b = BatchedFetchAttr(small_world(), 2); b.reset(); b.step(np.array([0, 1]))\n"

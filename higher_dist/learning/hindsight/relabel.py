@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from higher_dist.config import Config, GeneratorConfig
+from higher_dist.config import RELABEL_STRATEGIES, Config, GeneratorConfig
 from higher_dist.learning.episode import WRONG_PICK, Episode
 from higher_dist.learning.hindsight.generator import GeneratorTrainer
 from higher_dist.learning.hindsight.generator_data import parse_many
@@ -29,7 +29,6 @@ from higher_dist.world.language import expert_tokens, noisy_attrs
 from higher_dist.world.objects import ObjectSpace
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
-STRATEGIES = ("none", "expert", "noisy", "learned")
 RECENT_RELABELS = 1000  # window of the reported relabel accuracy
 
 
@@ -247,4 +246,4 @@ def make_relabeler(cfg: Config, seed: int, space: ObjectSpace | None = None) -> 
         return NoisyExpertRelabel(space if space is not None else ObjectSpace(cfg.world), cfg.relabel.noise_p, seed)
     if kind == "learned":
         return LearnedRelabel(cfg.generator, WorldSpec.of(cfg.world), seed, device=cfg.device)
-    raise ValueError(f"relabel.strategy: unknown strategy {kind!r}; choose one of {', '.join(STRATEGIES)}")
+    raise ValueError(f"relabel.strategy: unknown strategy {kind!r}; choose one of {', '.join(RELABEL_STRATEGIES)}")
