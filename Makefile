@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 TORCH_VERSION ?= 2.13.0
 
-.PHONY: install test test-fast test-deploy netns-tools slurm-tools cluster bench bench-time reproduce lint clean
+.PHONY: install test test-fast test-deploy netns-tools slurm-tools cluster bench bench-time reproduce docs lint clean
 
 # `make reproduce -- --dry-run --seeds 2 main`: the words after `reproduce` are higher-reproduce's
 # arguments (write `--seeds 2`, not `--seeds=2`: make takes NAME=VALUE words as its own variables).
@@ -65,6 +65,10 @@ bench: install
 bench-time: install
 	mkdir -p results
 	$(BIN)/higher-bench time-to-success --preset her --target 0.4 $(ARGS) | tee results/time-to-success-her.txt
+
+# docs/configuration.md and docs/metrics.md, from config.py and metrics.py (a unit test fails when they drift).
+docs: install
+	$(BIN)/python -m higher_dist.docs_gen
 
 lint: install
 	$(BIN)/python -m compileall -q higher_dist tests

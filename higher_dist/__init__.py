@@ -2,5 +2,5 @@
 
 try:  # registers the Gymnasium ids HIGhER/FetchAttr-v0 and -Small-v0 when gymnasium is installed
     import higher_dist.world  # noqa: F401
-except ImportError:  # never let an optional extra (or an import cycle) break `import higher_dist`
+except ImportError:  # never let an optional extra break `import higher_dist`
     pass

@@ -15,6 +15,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from higher_dist import metrics as m
 from higher_dist.config import Config
 
 _ND = "__ndarray__"
@@ -45,14 +46,14 @@ class RunDir:
         return json.loads(p.read_text()) if p.exists() else None
 
     def append_metrics(self, record: dict[str, Any]) -> None:
-        record = {"time": round(time.time(), 3), **record}
+        record = {m.TIME: round(time.time(), 3), **record}
         with open(self.metrics_path, "a") as f:
             f.write(json.dumps(plain_record(record)) + "\n")
         if self._tb is not None:
             # Every number of the record, against env frames, as TensorBoard scalars.
-            step = int(record.get("frames") or 0)
+            step = int(record.get(m.FRAMES) or 0)
             for key, value in record.items():
-                if isinstance(value, (int, float)) and not isinstance(value, bool) and key != "time":
+                if isinstance(value, (int, float)) and not isinstance(value, bool) and key != m.TIME:
                     self._tb.add_scalar(key, value, step)
             self._tb.flush()
 

@@ -117,7 +117,7 @@ def claims(plan: Plan) -> list[dict]:
 
     row = {"claim": "DQN+HIGhER nearly matches DQN+HER", "paper": "a few points below DQN+HER",
            "ours": (f"HIGhER {fmt(higher)}; HER {fmt(her)}" if higher or her else "not measured"),
-           "rule": "HIGhER within 10 points of HER (DESIGN.md's target), HER above 10%"}
+           "rule": "HIGhER within 10 points of HER, HER above 10%"}
     if higher and her:
         gap = her["mean"] - higher["mean"]
         row["verdict"] = ("inconclusive" if her["mean"] < 0.10 else "holds" if gap <= 0.10 else "does not hold")

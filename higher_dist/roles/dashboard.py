@@ -20,6 +20,7 @@ from rich.console import Console
 from rich.live import Live
 
 from higher_dist.launch.channels import open_channel
+from higher_dist.launch.topology import Endpoints
 from higher_dist.roles.dashboard_view import DashboardState, render
 from higher_dist.wire import codec
 from higher_dist.wire.security import Security
@@ -29,9 +30,6 @@ MAX_FRAME_BYTES = 8 << 20  # a telemetry record is a few kB; refuse to buffer an
 
 def telemetry_endpoint_for(control_endpoint: str) -> str:
     """tcp://HOST:P -> tcp://HOST:P+3, or a ValueError naming what is wrong with the endpoint."""
-    # Delegate to the topology module so the port layout is written down in exactly one place.
-    from higher_dist.launch.topology import Endpoints
-
     return Endpoints.from_control(control_endpoint).telemetry
 
 
