@@ -1,15 +1,17 @@
 """The learner role: the head of the cluster.
 
-A short loop around `LearnerCore`: answer control messages (roles/control_server.py), take episode batches while the samples-per-insert ratio allows (otherwise the sockets'
-high-water marks push back on the relabeler and the actors), run DQN updates, publish weights, start
-greedy evaluations on a background thread, write metrics and telemetry, checkpoint. Ends when the frame
-budget is reached or on SIGTERM/SIGINT.
+A short loop around `LearnerCore`: answer control messages (roles/control_server.py), take episode
+batches while the samples-per-insert ratio allows (otherwise the sockets' high-water marks push back on
+the relabeler and the actors), run DQN updates, publish weights, start greedy evaluations on a
+background thread, write metrics and telemetry, checkpoint. Ends when the frame budget is reached or on
+SIGTERM/SIGINT.
 
 No input can end the loop: every incoming episode is checked against the run's `WorldSpec` where it is
 unpacked (wire/episodes.py) and dropped, counted by reason, when it fails; an unexpected exception while
 handling one message is logged with the message's type and sender, counted as `handler_error`, and the
-loop goes on (roles/loop.HandlerGuard). Relabelled episodes are accepted only in messages whose sender is the relabeler: an actor
-never relabels, so such a claim from anyone else is dropped as `relabel_origin`.
+loop goes on (roles/loop.HandlerGuard). Relabelled episodes are accepted only in messages whose sender
+is the relabeler: an actor never relabels, so such a claim from anyone else is dropped as
+`relabel_origin`.
 """
 from __future__ import annotations
 
