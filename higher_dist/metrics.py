@@ -45,7 +45,7 @@ SUCCESS_EVAL_HELDOUT_AVERAGED = SUCCESS_EVAL_HELDOUT + AVERAGED_SUFFIX
 REPLAY_SIZE = "replay_size"  # transitions in the replay [transitions]
 REPLAY_RATIO = "replay_ratio"  # samples drawn per insert so far (the rate limiter's measure) [samples/insert]
 RELABELLED_EPISODES = "relabelled_episodes"  # relabelled copies the learner took in [count]
-REPLAY_ORIGIN_PREFIX = "replay_"  # + success | wrong_pick | timeout | relabelled: replay transitions by origin [transitions]
+REPLAY_ORIGIN_PREFIX = "replay_"  # + success, wrong_pick, timeout or relabelled: transitions by origin [transitions]
 # The DQN step's own metrics (learning/dqn.py), carried into the record as they come.
 LOSS = "loss"  # DQN loss of the last update (Huber, importance-weighted) [loss]
 Q_MEAN = "q_mean"  # mean Q of the actions taken, last batch [return]

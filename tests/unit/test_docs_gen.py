@@ -25,7 +25,8 @@ def test_every_metric_key_has_a_meaning_and_the_presets_differences_are_named():
             "fraction") in entries
     assert any(key == "replay_*" for _, key, _, _ in entries)
     table = docs_gen.configuration_md()
-    assert "| `relabel.strategy` | str: none \\| expert \\| noisy \\| learned | `none` | expert (her); noisy (noisy-her); learned (higher) |" in table
+    assert ("| `relabel.strategy` | str: none \\| expert \\| noisy \\| learned | `none` | "
+            "expert (her); noisy (noisy-her); learned (higher) |") in table
 
 
 def test_every_key_the_learner_records_is_in_the_metrics_reference():
