@@ -7,11 +7,12 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
 from higher_dist.config import ConfigError, from_dict
-from higher_dist.config_flags import add_config_flags, config_from_args, positive_int
+from higher_dist.config_flags import add_config_flags, config_from_args, positive_int, resumed_config
 
 
 def _die(prog: str, message: str) -> int:
@@ -63,11 +64,21 @@ def cluster_main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     def go() -> int:
-        from higher_dist.launch.local_cluster import default_actors, run_local_cluster
+        from higher_dist.launch.layout import available_cores, default_actors
+        from higher_dist.launch.local_cluster import run_local_cluster
+        from higher_dist.learning.devices import resolve_device
 
-        if args.actors is None:
-            args.actors = default_actors()
-        cfg = config_from_args(args)
+        if args.resume and not args.run_dir:
+            raise ConfigError("--resume: name the run to continue with --run-dir")
+        if args.resume:
+            cfg = resumed_config(args, args.run_dir)  # the run's config.json; changed flags refused by name
+        else:
+            cfg = config_from_args(args)
+            if args.actors is None:  # the layout's choice for this host and the learner's device
+                cfg = replace(cfg, actors=default_actors(available_cores(), str(resolve_device(cfg.device))))
+        if args.print_config:
+            print(cfg.to_json())
+            return 0
         run_dir = args.run_dir or time.strftime(f"runs/{cfg.preset}-{cfg.world.name}-s{cfg.seed}-%Y%m%d-%H%M%S")
         if not args.resume and (Path(run_dir) / "learner.ckpt").exists():
             raise ConfigError(f"--run-dir {run_dir} already holds a run: add --resume to continue it, "
@@ -86,6 +97,7 @@ def learner_main(argv: list[str] | None = None) -> int:
     p.add_argument("--config", default=None, help="a config.json to run instead of --preset/--world/--set")
     p.add_argument("--run-dir", required=True)
     p.add_argument("--resume", action="store_true")
+    p.add_argument("--layout", default=None, help=argparse.SUPPRESS)  # higher-cluster's host layout, for the dashboard
     args = p.parse_args(argv)
 
     def go() -> int:
@@ -98,11 +110,16 @@ def learner_main(argv: list[str] | None = None) -> int:
             except (OSError, json.JSONDecodeError) as e:
                 raise ConfigError(f"--config {args.config}: cannot read it ({e})") from None
             cfg = from_dict(data)
+        elif args.resume:
+            cfg = resumed_config(args, args.run_dir)
         else:
             cfg = config_from_args(args)
+        if args.print_config:
+            print(cfg.to_json())
+            return 0
         endpoints = Endpoints.from_base(args.host, args.port_base or DEFAULT_BASE_PORT)
         return run_learner(cfg, endpoints, args.run_dir, resume=args.resume, bind_host=args.bind_host,
-                           security=_security(args))
+                           security=_security(args), threads=args.threads, layout=args.layout)
 
     return _run("higher-learner", go)
 
@@ -180,8 +197,19 @@ def run_main(argv: list[str] | None = None) -> int:
         from higher_dist.learning.runner import SingleProcessRunner
         from higher_dist.rundir import RunDir
 
+        from higher_dist.launch.layout import available_cores
+
         cfg = config_from_args(args)
-        torch.set_num_threads(cfg.torch_threads)
+        if args.print_config:
+            print(cfg.to_json())
+            return 0
+        held = [name for name in ("config.json", "metrics.jsonl") if (Path(args.run_dir) / name).exists()]
+        if held:
+            raise ConfigError(f"--run-dir {args.run_dir} already holds a run ({', '.join(held)}); higher-run does "
+                              "not checkpoint, so it starts runs only in a new --run-dir (higher-cluster --resume "
+                              "continues a cluster run)")
+        # One process acts and learns: it may use every core.
+        torch.set_num_threads(cfg.torch_threads or available_cores())
         rd = RunDir(args.run_dir, tensorboard=cfg.tensorboard)
         rd.write_config(cfg)
 

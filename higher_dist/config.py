@@ -163,8 +163,9 @@ class Config:
     envs_per_actor: int = 32  # environments each actor steps together
     frames: int = 5_000_000  # env frames budget of the run
     seed: int = 0  # the run's seed; every component's seed derives from it
-    device: str = "cpu"  # the learner's torch device: cpu or cuda[:N]
-    torch_threads: int = 1  # torch threads per process
+    device: str = "auto"  # the learner's torch device: auto (CUDA when present), cpu or cuda[:N]
+    actor_device: str = "cpu"  # the actors' policy device: cpu, auto or cuda[:N]
+    torch_threads: int = 0  # the learner's torch threads; 0: the layout's share (launch/layout.py)
     weights_every: int = 20  # learner updates between weight publications
     stats_every_s: float = 2.0  # seconds between stats messages and metrics records
     checkpoint_every_s: float = 120.0  # seconds between checkpoints
@@ -319,6 +320,9 @@ def validate(cfg: Config) -> None:
     _check(cfg.actors >= 1, f"actors: must be >= 1, got {cfg.actors}")
     _check(cfg.envs_per_actor >= 1, f"envs_per_actor: must be >= 1, got {cfg.envs_per_actor}")
     _check(cfg.frames >= 1, f"frames: must be >= 1, got {cfg.frames}")
-    _check(cfg.device == "cpu" or cfg.device.startswith("cuda"), f"device: must be cpu or cuda[:N], got {cfg.device!r}")
-    _check(cfg.torch_threads >= 1, f"torch_threads: must be >= 1, got {cfg.torch_threads}")
+    for name in ("device", "actor_device"):
+        value = getattr(cfg, name)
+        _check(value in ("auto", "cpu", "cuda") or (value.startswith("cuda:") and value[5:].isdigit()),
+               f"{name}: must be auto, cpu, cuda or cuda:N, got {value!r}")
+    _check(cfg.torch_threads >= 0, f"torch_threads: must be >= 0 (0: the layout decides), got {cfg.torch_threads}")
     _check(cfg.weights_every >= 1, f"weights_every: must be >= 1, got {cfg.weights_every}")

@@ -29,33 +29,69 @@ def positive_int(text: str) -> int:
 
 
 def add_config_flags(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", choices=PRESETS, default="higher", help="the paper's method to run")
-    p.add_argument("--world", choices=WORLDS, default="paper", help="paper: 10x10, 10 objects; small: tests")
-    p.add_argument("--profile", choices=PROFILES, default="default",
-                   help="default: our tuned settings; paper: the paper's (docs/paper_settings.md)")
+    # Defaults are None here and filled in by config_from_args, so that `explicit_overrides` can tell a
+    # flag the user gave from a default (a resumed run compares only what was given with its config).
+    p.add_argument("--preset", choices=PRESETS, default=None, help="the paper's method to run (default: higher)")
+    p.add_argument("--world", choices=WORLDS, default=None,
+                   help="paper: 10x10, 10 objects; small: tests (default: paper)")
+    p.add_argument("--profile", choices=PROFILES, default=None,
+                   help="default: our tuned settings; paper: the paper's (docs/paper_settings.md) (default: default)")
     p.add_argument("--actors", type=positive_int, default=None,
-                   help="actor processes (higher-cluster's default fits the machine: half its cores, 1 to 8)")
-    p.add_argument("--envs-per-actor", type=positive_int, default=None, help="environments per actor")
-    p.add_argument("--frames", type=positive_int, default=None, help="stop after this many env frames")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu", help="learner device: cpu or cuda[:N]")
-    p.add_argument("--threads", type=positive_int, default=1, help="torch threads per process")
-    p.add_argument("--tensorboard", action="store_true", help="also write TensorBoard event files")
+                   help="actor processes (default: higher-cluster's layout for this host, launch/layout.py)")
+    p.add_argument("--envs-per-actor", type=positive_int, default=None,
+                   help="environments per actor (default: the preset's, 32 on the paper world)")
+    p.add_argument("--frames", type=positive_int, default=None,
+                   help="stop after this many env frames (default: the preset's, 5000000 on the paper world)")
+    p.add_argument("--seed", type=int, default=None, help="the run's seed (default: 0)")
+    p.add_argument("--device", default=None,
+                   help="learner device: auto (CUDA when present), cpu or cuda[:N] (default: auto)")
+    p.add_argument("--threads", type=positive_int, default=None,
+                   help="the learner's torch threads (default: every core the other roles leave, launch/layout.py)")
+    p.add_argument("--tensorboard", action="store_true", help="also write TensorBoard event files (default: off)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                   help="override any config field, e.g. --set dqn.lr=0.001 (repeatable)")
+                   help="override any config field, e.g. --set dqn.lr=0.001 (repeatable; docs/configuration.md)")
+    p.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
 
 
-def config_from_args(args: argparse.Namespace) -> Config:
-    overrides: dict[str, Any] = {"seed": args.seed, "device": args.device, "torch_threads": args.threads,
-                                 "tensorboard": args.tensorboard}
-    for name in ("actors", "envs_per_actor", "frames"):
-        if getattr(args, name, None) is not None:
-            overrides[name] = getattr(args, name)
-    for item in args.set:
+# flag -> config field, for the flags that set one field each
+_FLAG_FIELDS = {"seed": "seed", "device": "device", "threads": "torch_threads", "actors": "actors",
+                "envs_per_actor": "envs_per_actor", "frames": "frames"}
+
+
+def explicit_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """What the command line set, by dotted field name (preset, world and profile by their own names):
+    flags left at their defaults are not in it."""
+    out: dict[str, Any] = {name: getattr(args, name) for name in ("preset", "world", "profile")
+                           if getattr(args, name, None) is not None}
+    for flag, name in _FLAG_FIELDS.items():
+        if getattr(args, flag, None) is not None:
+            out[name] = getattr(args, flag)
+    if getattr(args, "tensorboard", False):
+        out["tensorboard"] = True
+    for item in getattr(args, "set", []):
         if "=" not in item:
             raise ConfigError(f"--set {item!r}: expected FIELD=VALUE")
         key, value = item.split("=", 1)
-        overrides[key.strip()] = _parse_value(value)
-    cfg = make_config(args.preset, args.world, args.profile, **overrides)
+        out[key.strip()] = _parse_value(value)
+    return out
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    overrides = explicit_overrides(args)
+    preset = overrides.pop("preset", "higher")
+    world = overrides.pop("world", "paper")
+    profile = overrides.pop("profile", "default")
+    cfg = make_config(preset, world, profile, **overrides)
     # Round trip through the wire form so --set values get the declared types (e.g. tuples).
     return from_dict(cfg.to_dict())
+
+
+def resumed_config(args: argparse.Namespace, run_dir: str) -> Config:
+    """The config of a run continued with --resume: the run's config.json, with the flags given checked
+    against it (resume.py); a change that is allowed is recorded in the run's history.jsonl."""
+    from higher_dist.resume import record_resume, resume_config, saved_config
+
+    cfg, changes = resume_config(saved_config(run_dir), explicit_overrides(args))
+    if not getattr(args, "print_config", False):
+        record_resume(run_dir, changes)
+    return cfg

@@ -16,6 +16,7 @@ from higher_dist import metrics as m
 from higher_dist.config import NetworkConfig, WorldConfig
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.exploration import Explorer, epsilon_greedy
+from higher_dist.learning.devices import resolve_device
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
 from higher_dist.world.grid import BatchedFetchAttr
 from higher_dist.world.spec import DEFAULT_SPEC, RUNNING, WorldSpec
@@ -82,7 +83,7 @@ class TorchQFunction:
     """Batched greedy Q-values from a QNetwork whose weights arrive as numpy arrays (actors, eval)."""
 
     def __init__(self, net_cfg: NetworkConfig, spec: WorldSpec = DEFAULT_SPEC, device: str = "cpu"):
-        self.device = torch.device(device)
+        self.device = resolve_device(device)
         self.net = QNetwork(net_cfg, spec).to(self.device).eval()
 
     def load(self, arrays: dict[str, np.ndarray]) -> None:

@@ -41,7 +41,7 @@ def run_actor(learner: str, actor_id: int | None = None, security: Security | No
     weights_sub = open_channel(ctx, "weights", "connect", endpoints.weights, client.security)
     out = sockets.PendingSend(open_channel(ctx, "episodes", "connect", endpoints.episodes, client.security))
     collector = agent.collector(idx)
-    policy = agent.policy()
+    policy = agent.policy(device=cfg.actor_device)
     expected = {k: v.shape for k, v in policy.net.state_dict().items()}
     rng = agent.exploration_rng(idx)
     explorer = agent.explorer(collector.n_envs)

@@ -142,6 +142,6 @@ def start_role(learner: str, role: str, index: int | None, security: Security | 
         raise SystemExit(2) from None
     except KeyboardInterrupt:
         raise SystemExit(0) from None
-    torch.set_num_threads(threads or cfg.torch_threads)
+    torch.set_num_threads(threads or 1)  # cfg.torch_threads is the learner's share; a role keeps one
     return client, cfg, endpoints, stop
 

@@ -28,8 +28,10 @@ from higher_dist import config as config_mod
 from higher_dist import metrics as m
 from higher_dist.config import Config
 from higher_dist.launch.channels import check_binds, open_channel
+from higher_dist.launch.layout import available_cores, learner_alone
 from higher_dist.launch.topology import Endpoints
 from higher_dist.learning.agent import AgentBuilder
+from higher_dist.learning.devices import resolve_device
 from higher_dist.roles.control_server import ControlServer
 from higher_dist.roles.evaluator import BackgroundEvaluator
 from higher_dist.roles.loop import Every, HandlerGuard
@@ -46,8 +48,12 @@ WEIGHTS_REPUBLISH_S = 2.0  # late subscribers (a restarted actor) get weights wi
 
 class LearnerRole:
     def __init__(self, cfg: Config, endpoints: Endpoints, run_dir: str, resume: bool = False,
-                 bind_host: str | None = None, security: Security | None = None):
-        torch.set_num_threads(cfg.torch_threads)
+                 bind_host: str | None = None, security: Security | None = None, threads: int | None = None,
+                 layout: str | None = None):
+        # The launcher passes its host layout's share; a learner started alone takes its host's cores.
+        threads = threads or learner_alone(available_cores(), str(resolve_device(cfg.device)), cfg.torch_threads)
+        torch.set_num_threads(threads)
+        self.layout = layout or f"learner alone: {threads} thread{'s' if threads != 1 else ''}"
         torch.manual_seed(cfg.seed)
         self.cfg, self.endpoints = cfg, endpoints
         # Without keys, every port bound beyond loopback is named at once, before anything is written:
@@ -148,7 +154,7 @@ class LearnerRole:
         r = self.core.metrics()
         r.update({
             m.ELAPSED_S: round(time.time() - self.started, 1), m.PRESET: self.cfg.preset,
-            m.WORLD: self.cfg.world.name, m.FRAMES_BUDGET: self.cfg.frames, m.WEIGHTS_VERSION: self.weights_version,
+            m.WORLD: self.cfg.world.name, m.LAYOUT: self.layout, m.FRAMES_BUDGET: self.cfg.frames, m.WEIGHTS_VERSION: self.weights_version,
             m.UPDATES_PER_S: round(self.updates_rate(self.core.updates), 2),
             m.LEARNER_REJECTED: self.rejects.total, m.HANDLER_ERRORS: self.guard.errors,
             **self.evaluator.latest(),
@@ -215,7 +221,8 @@ class LearnerRole:
 
 
 def run_learner(cfg: Config, endpoints: Endpoints, run_dir: str, resume: bool = False,
-                bind_host: str | None = None, security: Security | None = None) -> int:
+                bind_host: str | None = None, security: Security | None = None, threads: int | None = None,
+                layout: str | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     config_mod.validate(cfg)
-    return LearnerRole(cfg, endpoints, run_dir, resume, bind_host, security).run()
+    return LearnerRole(cfg, endpoints, run_dir, resume, bind_host, security, threads, layout).run()
