@@ -90,6 +90,27 @@ def read_metrics(path: str | os.PathLike) -> list[dict[str, Any]]:
     return out
 
 
+def last_record(path: str | os.PathLike, max_bytes: int = 1 << 18) -> dict[str, Any] | None:
+    """The newest complete JSON line of a metrics file, reading only its end: a supervisor polling a run for
+    days must not parse (and hold) the whole, ever-growing file each time."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(0, size - max_bytes))
+            tail = f.read()
+    except FileNotFoundError:
+        return None
+    for line in reversed(tail.splitlines()):
+        try:
+            record = json.loads(line)
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            continue  # a torn last line, or the first, cut line of the window
+        if isinstance(record, dict):
+            return record
+    return None
+
+
 def atomic_write(path: Path, write: Callable[[Path], None], fsync: bool = False) -> None:
     """`write` fills a temporary file beside `path`, which is then renamed over it: a reader (or a crash)
     sees the old file or the new one, never half of one."""

@@ -21,7 +21,7 @@ from higher_dist.config import Config
 from higher_dist.launch.channels import check_binds
 from higher_dist.launch.layout import Layout, available_cores, plan_layout
 from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, check_free, claim_ports, parse_endpoint
-from higher_dist.rundir import RunDir, read_metrics
+from higher_dist.rundir import RunDir, last_record
 from higher_dist.wire.security import Security
 
 GRACE_S = 20.0  # time each role gets to checkpoint and exit after SIGTERM
@@ -200,16 +200,16 @@ def run_local_cluster(cfg: Config, run_dir: str, resume: bool = False, dashboard
     sup.say(f"run dir {rd.path}; control {endpoints.control}; {cfg.actors} actors x {cfg.envs_per_actor} envs; "
             f"preset {cfg.preset} on the {cfg.world.name} world; {cfg.frames} frames; layout: {layout.describe()}")
     sup.start_all()
-    last_print, seen = 0.0, 0
+    last_print, seen = 0.0, None
     try:
         while not stop_requested and sup.poll():
             time.sleep(0.2)
             if not dashboard and time.time() - last_print > max(cfg.stats_every_s, 2.0):
                 last_print = time.time()
-                records = read_metrics(rd.metrics_path)
-                if len(records) > seen:
-                    seen = len(records)
-                    sup.say(_summary(records[-1]))
+                record = last_record(rd.metrics_path)  # the tail only: the file grows for the run's life
+                if record is not None and record.get("time") != seen:
+                    seen = record.get("time")
+                    sup.say(_summary(record))
     finally:
         sup.stop_all()
         for s, handler in old.items():
@@ -218,9 +218,9 @@ def run_local_cluster(cfg: Config, run_dir: str, resume: bool = False, dashboard
             claim.close()
     if stop_requested:
         sup.say("stopped on request; checkpoints written")
-    records = read_metrics(rd.metrics_path)
-    if records:
-        print(json.dumps({k: v for k, v in records[-1].items() if k != "roles"}))
+    record = last_record(rd.metrics_path)
+    if record:
+        print(json.dumps({k: v for k, v in record.items() if k != "roles"}))
     return sup.exit_code
 
 

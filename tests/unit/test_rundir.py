@@ -43,3 +43,16 @@ def test_tensorboard_event_files_hold_the_metrics(tmp_path):
     assert [(e.step, round(e.value, 3)) for e in events] == [(100, 0.1), (200, 0.2)]
     assert "preset" not in acc.Tags()["scalars"] and "gate" not in acc.Tags()["scalars"]
     assert json.loads(rd.metrics_path.read_text().splitlines()[0])["frames"] == 100
+
+
+def test_last_record_reads_only_the_tail_and_skips_a_torn_line(tmp_path):
+    from higher_dist.rundir import last_record
+
+    path = tmp_path / "metrics.jsonl"
+    assert last_record(path) is None
+    lines = [json.dumps({"frames": i, "pad": "x" * 100}) for i in range(2000)]
+    path.write_text("\n".join(lines) + "\n" + '{"frames": 99')  # a crash mid-write leaves a torn line
+    assert last_record(path)["frames"] == 1999
+    # A window that cuts into a line still finds the newest whole one.
+    assert last_record(path, max_bytes=150)["frames"] == 1999
+    assert last_record(path, max_bytes=10) is None
