@@ -3,7 +3,7 @@
 Each mutation takes real episodes (learning/samples.py) and breaks one thing a peer could lie about;
 `hostile_message` returns the encoded frames together with what the receiver must do with them (how
 many episodes it must drop, under which reason). The fuzz tests drive real learners and relabelers with
-these; `higher-bench` may too. Used only to attack this project's own processes.
+these. Used only to attack this project's own processes.
 """
 from __future__ import annotations
 
