@@ -69,18 +69,26 @@ def test_learner_resumes_from_its_checkpoint(tmp_path):
         if not weights.poll(120_000):
             pytest.fail("no weights from the resumed learner\n" + watch.diagnostics())
         version, arrays = codec.decode_weights(weights.recv())
-        # The checkpoint's online network is the one after its last update: published as that version.
-        assert version == counters["updates"] >= saved["weights_version"]
+        # The checkpoint's online network is the one after its last update. With the replay restored, the
+        # learner may go on updating at once (the samples-per-insert ratio it had left), so the first
+        # weights it publishes are that version or a later one; when they are that version, exactly.
+        assert version >= counters["updates"] >= saved["weights_version"]
         expected = _online_weights(saved)
         assert set(arrays) == set(expected)
-        for name, value in expected.items():
-            np.testing.assert_array_equal(arrays[name], value, err_msg=name)
+        if version == counters["updates"]:
+            for name, value in expected.items():
+                np.testing.assert_array_equal(arrays[name], value, err_msg=name)
         first_after = watch.wait_for("a metrics record from the resumed learner", lambda r: True, timeout=60,
                                      after=n_records)
-        assert first_after["updates"] == counters["updates"]
+        assert first_after["updates"] >= counters["updates"]
         assert first_after["frames"] == counters["frames"]
         assert first_after["episodes"] == counters["episodes"]
         assert first_after["relabelled_episodes"] == counters["relabelled_episodes"]
+        # The replay is in the checkpoint by default: the resumed learner starts with the same transitions,
+        # of the same origins, before any new experience arrives (no actor is back yet).
+        assert stop_record["replay_size"] > 0
+        for key in ("replay_size", "replay_success", "replay_wrong_pick", "replay_timeout", "replay_relabelled"):
+            assert first_after.get(key) == stop_record.get(key), key
         # The run's clock goes on from the checkpoint's running time, not from zero.
         assert saved["elapsed_s"] == pytest.approx(stop_record["elapsed_s"], abs=1.0) and saved["elapsed_s"] > 0
         assert first_after["elapsed_s"] >= round(saved["elapsed_s"], 1)
