@@ -60,3 +60,19 @@ def test_learner_bench_measures_one_lever_row_through_the_replay(capsys):
     row = last["rows"]["+ prefetch"]["b8"]
     assert row["samples_per_s"] > 0 and row["cpu_samples_per_s"] > 0 and row["compile_s"] is None
     assert last["b8_samples_per_s"] == row["samples_per_s"] and "+ prefetch" in out
+
+
+def test_gpu_bench_refuses_a_host_without_cuda_and_measures_the_cpu_path_when_allowed(capsys):
+    import torch
+
+    if torch.cuda.is_available():
+        import pytest
+
+        pytest.skip("this host has a CUDA device: the refusal and the CPU fallback are for hosts without one")
+    assert main(["gpu", "--cluster-seconds", "0"]) == 2
+    assert "no CUDA device" in capsys.readouterr().out
+    assert main(["gpu", "--allow-cpu", "--batch-sizes", "8", "--seconds", "0.05", "--no-compile",
+                 "--cluster-seconds", "0"]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert last["device"] == "cpu" and last["layout"]["learner_device"] == "cpu"
+    assert last["learner"]["eager b8"]["samples_per_s"] > 0 and "cluster" not in last
