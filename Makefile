@@ -11,6 +11,11 @@ TORCH_VERSION ?= 2.13.0
 # arguments (write `--seeds 2`, not `--seeds=2`: make takes NAME=VALUE words as its own variables).
 # They become targets of make too, so they get an empty rule here. ARGS="..." works as well.
 ifeq (reproduce,$(firstword $(MAKECMDGOALS)))
+# A word with `=` is a make variable, not an argument: refuse it rather than drop it silently.
+SWALLOWED := $(filter-out ARGS=% PY=% TORCH_VERSION=%,$(MAKEOVERRIDES))
+ifneq ($(strip $(SWALLOWED)),)
+$(error make took '$(SWALLOWED)' as its own variable, not an argument of higher-reproduce: write it with a space (--seeds 2) or pass ARGS="--seeds=2")
+endif
 REPRODUCE_ARGS := $(wordlist 2,$(words $(MAKECMDGOALS)),$(MAKECMDGOALS))
 ifneq ($(REPRODUCE_ARGS),)
 $(eval $(REPRODUCE_ARGS):;@:)

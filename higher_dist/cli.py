@@ -12,7 +12,8 @@ from pathlib import Path
 from typing import Callable
 
 from higher_dist.config import ConfigError, from_dict
-from higher_dist.config_flags import add_config_flags, config_from_args, positive_int, resumed_config
+from higher_dist.config_flags import (DefaultsHelp, add_config_flags, config_from_args, non_negative_int,
+                                     positive_int, resumed_config)
 
 
 def _die(prog: str, message: str) -> int:
@@ -54,13 +55,15 @@ def _run(prog: str, build: Callable[[], int]) -> int:
 
 
 def cluster_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser("higher-cluster", description="Run learner, relabeler, actors and dashboard here.")
+    p = argparse.ArgumentParser("higher-cluster", description="Run learner, relabeler, actors and dashboard here.",
+                                formatter_class=DefaultsHelp)
     add_config_flags(p)
     _network_flags(p)
     p.add_argument("--run-dir", default=None, help="where config, metrics and checkpoints go (default runs/PRESET-WORLD-sSEED-TIME)")
     p.add_argument("--resume", action="store_true", help="continue from the run directory's checkpoints")
     p.add_argument("--no-dashboard", action="store_true", help="no live dashboard (prints a line per interval)")
-    p.add_argument("--max-restarts", type=int, default=5, help="restarts of one role before giving up")
+    p.add_argument("--max-restarts", type=non_negative_int, default=5,
+                   help="restarts of one role before giving up (default: 5)")
     args = p.parse_args(argv)
 
     def go() -> int:
@@ -91,7 +94,8 @@ def cluster_main(argv: list[str] | None = None) -> int:
 
 
 def learner_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser("higher-learner", description="The learner: replay, DQN, weights, the run's config.")
+    p = argparse.ArgumentParser("higher-learner", description="The learner: replay, DQN, weights, the run's config.",
+                                formatter_class=DefaultsHelp)
     add_config_flags(p)
     _network_flags(p)
     p.add_argument("--config", default=None, help="a config.json to run instead of --preset/--world/--set")
@@ -131,7 +135,8 @@ def _role_flags(p: argparse.ArgumentParser, binds: bool = False) -> None:
 
 
 def relabeler_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser("higher-relabeler", description="The relabeler: instruction generator service.")
+    p = argparse.ArgumentParser("higher-relabeler", description="The relabeler: instruction generator service.",
+                                formatter_class=DefaultsHelp)
     _role_flags(p, binds=True)
     p.add_argument("--bind-host", default=None, help="interface to bind its episodes socket")
     p.add_argument("--advertise", default=None, metavar="tcp://HOST:PORT",
@@ -154,9 +159,11 @@ def relabeler_main(argv: list[str] | None = None) -> int:
 
 
 def actor_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser("higher-actor", description="An actor: B environments, epsilon-greedy.")
+    p = argparse.ArgumentParser("higher-actor", description="An actor: B environments, epsilon-greedy.",
+                                formatter_class=DefaultsHelp)
     _role_flags(p)
-    p.add_argument("--actor-id", type=int, default=None, help="fixed index (sets its epsilon); default: assigned")
+    p.add_argument("--actor-id", type=non_negative_int, default=None,
+                   help="fixed index (sets its epsilon) (default: the learner assigns one)")
     args = p.parse_args(argv)
 
     def go() -> int:
@@ -168,7 +175,8 @@ def actor_main(argv: list[str] | None = None) -> int:
 
 
 def dashboard_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser("higher-dashboard", description="Attach a live dashboard to a running cluster.")
+    p = argparse.ArgumentParser("higher-dashboard", description="Attach a live dashboard to a running cluster.",
+                                formatter_class=DefaultsHelp)
     p.add_argument("--learner", required=True, help="the learner's control endpoint, tcp://HOST:PORT")
     p.add_argument("--seconds", type=float, default=None, help="exit after this long")
     _security_flags(p, binds=False)
@@ -185,7 +193,8 @@ def dashboard_main(argv: list[str] | None = None) -> int:
 
 
 def run_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser("higher-run", description="All components in one process (debugging, tests).")
+    p = argparse.ArgumentParser("higher-run", description="All components in one process (debugging, tests).",
+                                formatter_class=DefaultsHelp)
     add_config_flags(p)
     p.add_argument("--run-dir", required=True)
     p.add_argument("--metrics-every", type=positive_int, default=10_000, help="frames between metric lines")
@@ -254,11 +263,15 @@ def render_main(argv: list[str] | None = None) -> int:
 
 
 def keys_main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser("higher-keys", description="Make CURVE key pairs for a multi-host cluster.")
+    p = argparse.ArgumentParser("higher-keys", description="Make CURVE key pairs for a multi-host cluster.",
+                                formatter_class=DefaultsHelp)
     p.add_argument("dir", help="folder to write server and client keys into")
     args = p.parse_args(argv)
     from higher_dist.wire.security import generate_keys
 
-    generate_keys(args.dir)
+    try:
+        generate_keys(args.dir)
+    except ValueError as e:
+        return _die("higher-keys", str(e))
     print(f"keys written to {args.dir}")
     return 0

@@ -18,13 +18,40 @@ def _parse_value(text: str) -> Any:
         return text
 
 
-def positive_int(text: str) -> int:
+class DefaultsHelp(argparse.HelpFormatter):
+    """Every option's help ends with its default, unless the help already names it or there is none to
+    show (a switch that is off, or a default the command works out at run time and the help describes)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        quiet = action.default in (None, False, argparse.SUPPRESS) or action.option_strings == []
+        if quiet or "default" in text or "%(default)" in text:
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+def parse_count(text: str) -> int:
+    """An integer count as every command reads one: 2000000, 2_000_000 or 2e6 (a whole number)."""
     try:
-        value = int(text)
+        value = float(text.replace("_", "")) if any(c in text.lower() for c in "e.") else int(text.replace("_", ""))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value != int(value):
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}")
+    return int(value)
+
+
+def positive_int(text: str) -> int:
+    value = parse_count(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    value = parse_count(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
     return value
 
 

@@ -25,10 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
+from higher_dist.config_flags import DefaultsHelp
 from higher_dist import metrics as m
 from higher_dist.analysis.drawing import pyplot
 from higher_dist.analysis.runs import (REPLAY_KEYS, NoRun, Run, find_runs, is_number, mean_band, replay_fractions,
                                       success_key)
+from higher_dist.rundir import ensure_folder
+
 
 def plot_success(runs: list[Run], key_for, title: str, out: Path) -> Path:
     plt = pyplot()
@@ -161,7 +164,8 @@ def _save(fig, out: Path) -> Path:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser("higher-plot", description="Plot the curves of one or more runs.")
+    parser = argparse.ArgumentParser("higher-plot", description="Plot the curves of one or more runs.",
+                                     formatter_class=DefaultsHelp)
     parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories (or a folder of runs)")
     parser.add_argument("--out", default="plots", help="where the PNG files go (default: ./plots)")
     parser.add_argument("--table", action="store_true",
@@ -178,7 +182,11 @@ def main(argv: list[str]) -> int:
         print("higher-plot: matplotlib is missing; pip install 'higher-dist[plot]'", file=sys.stderr)
         return 2
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        ensure_folder(out, "--out")
+    except ValueError as e:
+        print(f"higher-plot: error: {e}", file=sys.stderr)
+        return 2
 
     greedy = all(success_key(run) == m.SUCCESS_EVAL_TRAIN for run in runs)
     title = ("Greedy success on training goals" if greedy

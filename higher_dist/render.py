@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from higher_dist.config_flags import DefaultsHelp
 from higher_dist.config import COLORS, SHADES, SIZES, TYPES, ConfigError, from_dict
 from higher_dist.learning.episode import Episode
 from higher_dist.world.spec import SUCCESS, TIMEOUT, WRONG_PICK
@@ -245,7 +246,8 @@ def save_strip(watched: list[Watched], view_size: int, cell: int, label: str, pa
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser("higher-render", description="Draw greedy episodes of a run's latest checkpoint.")
+    p = argparse.ArgumentParser("higher-render", description="Draw greedy episodes of a run's latest checkpoint.",
+                                     formatter_class=DefaultsHelp)
     p.add_argument("run_dir", metavar="RUN_DIR")
     p.add_argument("--episodes", type=int, default=4)
     p.add_argument("--out", default="episodes.gif", help="FILE.gif (animation) or FILE.png (a strip of frames)")

@@ -24,7 +24,7 @@ _ND = "__ndarray__"
 class RunDir:
     def __init__(self, path: str | os.PathLike, tensorboard: bool = False):
         self.path = Path(path)
-        self.path.mkdir(parents=True, exist_ok=True)
+        ensure_folder(self.path, "--run-dir")
         self._tb = None
         if tensorboard:
             try:
@@ -88,6 +88,17 @@ def read_metrics(path: str | os.PathLike) -> list[dict[str, Any]]:
     except FileNotFoundError:
         pass
     return out
+
+
+def ensure_folder(path: Path, flag: str) -> None:
+    """Make `path` a folder (parents too), or refuse by name with a one-line ValueError: a file in the way,
+    or a folder that cannot be made."""
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{flag} {path}: is a file, not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{flag} {path}: cannot make this folder ({e.strerror})") from None
 
 
 def last_record(path: str | os.PathLike, max_bytes: int = 1 << 18) -> dict[str, Any] | None:

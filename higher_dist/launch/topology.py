@@ -7,6 +7,7 @@ sent in the welcome message (which carries the relabeler's registered address fo
 """
 from __future__ import annotations
 
+import errno
 import fcntl
 import socket
 import tempfile
@@ -124,6 +125,9 @@ def check_free(endpoints: "Endpoints", bind_host: str | None = None) -> None:
         try:
             s.bind((bind_host or host, port))
         except OSError as e:
+            if e.errno == errno.EADDRNOTAVAIL:
+                raise ValueError(f"{bind_host or host} is not an address of this host ({e.strerror}): give "
+                                 "--host (or --bind-host) one of its own addresses") from None
             raise ValueError(f"{name} port {port} on {bind_host or host} is in use ({e.strerror}): is another "
                              f"cluster running? Stop it or pick other ports with --port-base") from None
         finally:

@@ -9,22 +9,14 @@ import sys
 from pathlib import Path
 
 from higher_dist.config import WORLDS, ConfigError
+from higher_dist.config_flags import positive_int
 from higher_dist.reproduce import plan as plan_mod
 from higher_dist.reproduce.claims import write_results
 from higher_dist.reproduce.executor import Executor
+from higher_dist.rundir import ensure_folder
 from higher_dist.reproduce.figures import draw_all
 from higher_dist.reproduce.status import estimate, human_seconds
 from higher_dist.reproduce.view import make_view
-
-
-def _positive(text: str) -> int:
-    try:
-        value = int(float(text)) if "e" in text.lower() else int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
 
 
 def parser() -> argparse.ArgumentParser:
@@ -36,20 +28,20 @@ def parser() -> argparse.ArgumentParser:
                "pairs), generator (exact match vs 1k..5k expert pairs). Rerun the same command to resume.")
     p.add_argument("experiments", nargs="*", metavar="EXPERIMENT", help=f"any of {', '.join(plan_mod.EXPERIMENTS)} "
                    "(default: all)")
-    p.add_argument("--seeds", type=_positive, default=plan_mod.PAPER_SEEDS, help="seeds per method (paper: 5)")
-    p.add_argument("--frames", type=_positive, default=plan_mod.PAPER_FRAMES,
+    p.add_argument("--seeds", type=positive_int, default=plan_mod.PAPER_SEEDS, help="seeds per method (paper: 5)")
+    p.add_argument("--frames", type=positive_int, default=plan_mod.PAPER_FRAMES,
                    help="env frames per run (paper: 5000000; 1e5 style accepted)")
     p.add_argument("--profile", choices=plan_mod.PROFILES, default="paper",
                    help="paper: the paper's settings; default: this project's defaults")
-    p.add_argument("--parallel", type=_positive, default=None,
+    p.add_argument("--parallel", type=positive_int, default=None,
                    help=f"runs at once (default fits this machine: {plan_mod.default_parallel()})")
     p.add_argument("--out", default="runs/reproduce", help="the plan's folder (plan.json, runs/, figures/, results.md)")
     p.add_argument("--world", choices=WORLDS, default="paper", help="small: a quick world for smoke tests")
     p.add_argument("--methods", default=None, metavar="LIST",
                    help="only these variants or presets, comma-separated (e.g. dqn,her)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="a config override for every run")
-    p.add_argument("--actors", type=_positive, default=None, help="actors per run (default fits the machine)")
-    p.add_argument("--generator-steps", type=_positive, default=plan_mod.GENERATOR_STEPS,
+    p.add_argument("--actors", type=positive_int, default=None, help="actors per run (default fits the machine)")
+    p.add_argument("--generator-steps", type=positive_int, default=plan_mod.GENERATOR_STEPS,
                    help="Adam steps per generator run")
     p.add_argument("--dry-run", action="store_true", help="print the plan and its estimated cost; run nothing")
     p.add_argument("--report", action="store_true", help="only draw the figures and write results.md from --out")
@@ -110,7 +102,10 @@ def _lock(out: Path) -> None:
         running = False  # no lock, or its process is gone: the folder is free
     if running:
         raise ConfigError(f"--out {out}: higher-reproduce (pid {pid}) is already running this plan")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        ensure_folder(out, "--out")
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
     lock.write_text(str(os.getpid()))
 
 

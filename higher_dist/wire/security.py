@@ -64,8 +64,16 @@ def generate_keys(keys_dir: str | os.PathLike, clients: tuple[str, ...] = ("clie
     """
     root = Path(keys_dir)
     allowed = root / ALLOWED_DIR
-    allowed.mkdir(parents=True, exist_ok=True)
+    for folder in (root, allowed):
+        if folder.exists() and not folder.is_dir():
+            raise ValueError(f"{folder}: is a file, not a folder for keys")
+    try:
+        allowed.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{allowed}: cannot make this folder ({e.strerror})") from None
+    # Private whatever the umask: who may join is decided by what is in these folders.
     os.chmod(root, 0o700)
+    os.chmod(allowed, 0o700)
     publics = {}
     for name in (SERVER_NAME, *clients):
         public, secret_file = root / f"{name}.key", root / f"{name}.key_secret"

@@ -175,7 +175,7 @@ def test_override_from_dict_and_validate_name_the_field():
 # layers, never a unit of its own layer or above: every arrow points down.
 LAYERS = (
     ("config", "metrics"),
-    ("config_presets",),
+    ("config_presets", "resume"),
     ("config_flags",),
     ("world",),
     ("learning",),
