@@ -80,7 +80,7 @@ class DQNConfig:
     huber_delta: float = 1.0  # Huber loss threshold
     grad_clip: float = 10.0  # gradient norm clip
     target_update: str = "period"  # target network: period (hard copies) | polyak (soft)
-    target_period: int = 1500  # updates between hard target copies
+    target_period: int = 750  # updates between hard target copies (48k env frames at batch 256, 4 samples/frame)
     polyak_tau: float = 0.005  # soft target step per update (target_update = polyak)
     double: bool = True  # double DQN targets
     average_tau: float = 0.001  # > 0: also keep a moving average of the weights, evaluated beside them
@@ -97,7 +97,7 @@ class ReplayConfig:
     beta_end: float = 1.0  # importance-sampling exponent after beta_frames
     beta_frames: int = 5_000_000  # frames over which beta anneals to beta_end
     min_size: int = 2_000  # transitions before learning starts
-    samples_per_insert: float = 8.0  # replay ratio kept by the rate limiter (as in Reverb)
+    samples_per_insert: float = 4.0  # replay ratio kept by the rate limiter (as in Reverb): samples per env frame
     ratio_counts: str = "env_frames"  # what one insert is: env_frames (originals only) | transitions
     timeouts_terminal: bool = False  # True: a time-out is stored as terminal (the paper's code), else it bootstraps
     priority_eps: float = 1e-3  # added to |TD error| for priorities

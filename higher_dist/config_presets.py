@@ -55,7 +55,7 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
             cfg,
             dqn=replace(cfg.dqn, batch_size=64, lr=5e-4, target_period=500, compile=False),
             generator=replace(cfg.generator, n_min=100, capacity=2000, updates_per_kframe=50.0, eval_every_updates=50),
-            replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000),
+            replay=replace(cfg.replay, capacity=50_000, min_size=500, beta_frames=200_000, samples_per_insert=8.0),
             exploration=replace(cfg.exploration, decay_frames=50_000),
             eval=EvalConfig(every_frames=10_000, episodes=32),
             frames=200_000, envs_per_actor=16,
