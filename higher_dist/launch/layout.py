@@ -105,8 +105,11 @@ def plan_layout(cores: int, actors: int | None = None, learner_device: str = "cp
 
 
 def learner_alone(cores: int, learner_device: str = "cpu", learner_threads: int = 0) -> int:
-    """torch threads of a learner started on its own (`higher-learner` on a host of its own, by Slurm or
-    systemd): the host's cores for a CPU learner, two for a GPU one, or the config's torch_threads."""
+    """torch threads of a learner started on its own (`higher-learner`, by Slurm or systemd): the config's
+    torch_threads when set (the sbatch script sets it from its allocation), else two for a GPU learner,
+    else the host's cores but two, which the relabeler and an actor on the same host keep. Never more:
+    an OpenMP thread that waits for a core another process holds spins, and a learner with more threads
+    than free cores ran at a few percent of its speed (docs/benchmarks.md, "Layout per core count")."""
     if learner_threads > 0:
         return learner_threads
-    return min(2, cores) if is_gpu(learner_device) else cores
+    return min(2, cores) if is_gpu(learner_device) else max(1, cores - 2)

@@ -164,6 +164,14 @@ class LearnerRole:
 
     # -- loop ---------------------------------------------------------------------------------------
     def run(self) -> int:
+        if self.core.frames >= self.cfg.frames:
+            # A restart of a run that is over (a reboot under systemd, a requeue): say so and leave the run
+            # as it ended, with no second final evaluation, record or checkpoint.
+            self.stop_reason = f"the run already reached its budget ({self.core.frames} of {self.cfg.frames} frames)"
+            log.info("nothing to do: %s", self.stop_reason)
+            self.control.stop_all(self.stop_reason)
+            self._close()
+            return 0
         stop = []
         for s in (signal.SIGINT, signal.SIGTERM):
             signal.signal(s, lambda *_: stop.append(1))
@@ -213,11 +221,14 @@ class LearnerRole:
         record = self.record()
         self.rd.append_metrics(record)
         self.checkpoint()
+        self._close()
+        log.info("learner stopped: %s", self.stop_reason)
+
+    def _close(self) -> None:
         self.control.close()
         for s in (self.experience, self.weights, self.telemetry):
             s.close(linger=200)
         self.security.close()
-        log.info("learner stopped: %s", self.stop_reason)
 
 
 def run_learner(cfg: Config, endpoints: Endpoints, run_dir: str, resume: bool = False,

@@ -47,7 +47,7 @@ pytestmark = pytest.mark.skipif(_reason is not None, reason=_reason or "")
 
 def slurm_conf(tmp: Path, hosts: Hosts) -> str:
     ctl_name = socket.gethostname().split(".")[0]  # slurmctld only runs where SlurmctldHost names it
-    nodes = "\n".join(f"NodeName={n} NodeAddr={hosts.addr(n)} CPUs=4 State=UNKNOWN" for n in NODES)
+    nodes = "\n".join(f"NodeName={n} NodeAddr={hosts.addr(n)} CPUs=4 RealMemory=4000 State=UNKNOWN" for n in NODES)
     return f"""ClusterName=hdtest
 SlurmctldHost={ctl_name}({hosts.addr('ctl')})
 SlurmUser=root
@@ -207,16 +207,21 @@ def test_sbatch_runs_across_two_nodes_survives_a_requeue_and_finishes(slurm, tmp
     extra = " ".join(f"--set {k}={v}" for k, v in FAST_SETTINGS.items() if v is not None and not isinstance(v, list))
     env = dict(slurm.env, WORLD="small", FRAMES=str(FRAMES), ACTORS_PER_NODE="1", RUN=str(run),
                VENV=str(Path(sys.executable).parent.parent), EXTRA=f"--envs-per-actor 8 {extra}")
+    header = SBATCH.read_text()
+    for line in ("#SBATCH --cpus-per-task=", "#SBATCH --mem=", "#SBATCH --signal=B:USR1@", "#SBATCH --requeue"):
+        assert line in header, line
+    # The test nodes have 4 CPUs and 4000 MB: ask for what they have (the script's defaults are 8 and 8G).
     submitted = slurm.run("sbatch", "--parsable", f"--nodes={len(NODES)}", f"--output={tmp_path}/job-%j.out",
-                          f"--chdir={REPO}", str(SBATCH), env=env)
+                          "--cpus-per-task=4", "--mem=1G", f"--chdir={REPO}", str(SBATCH), env=env)
     assert submitted.returncode == 0, submitted.stderr
     job_id = submitted.stdout.strip().split(";")[0]
     log = tmp_path / f"job-{job_id}.out"
 
-    # Preempted mid-run: Slurm requeues the job (same id, same RUN); its second start must resume.
+    # The time limit near (Slurm's --signal sends USR1 to the batch script): every role checkpoints and
+    # the job requeues itself (same id, same RUN); its second start must resume.
     at_requeue = wait_for_checkpoint(run, slurm, job_id)
-    requeued = slurm.run("scontrol", "requeue", job_id)
-    assert requeued.returncode == 0, requeued.stderr
+    signalled = slurm.run("scancel", "--signal=USR1", "--batch", job_id)
+    assert signalled.returncode == 0, signalled.stderr
     deadline = time.monotonic() + 60
     while slurm.job(job_id).get("JobState") != "PENDING" and time.monotonic() < deadline:
         time.sleep(0.5)
@@ -228,6 +233,7 @@ def test_sbatch_runs_across_two_nodes_survives_a_requeue_and_finishes(slurm, tmp
     assert info["Restarts"] == "1" and info["NodeList"] == "hdn[1-2]", info
     head_addr = slurm.hosts.addr("hdn1")
     assert f"head hdn1 at {head_addr}, control tcp://{head_addr}:" in output  # a bridge address, not loopback
+    assert "time limit near: stopping every role" in output and f"requeueing job {job_id}" in output
     second_start = output[output.rindex("head hdn1 at"):]
     assert "--resume" in second_start.splitlines()[0] and "learner exited with 0" in second_start
     resumed = re.search(r"resumed at (\d+) frames", second_start)

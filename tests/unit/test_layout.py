@@ -49,7 +49,8 @@ def test_impossible_layouts_are_refused(bad):
 
 
 def test_a_learner_alone_takes_its_host():
-    assert learner_alone(8) == 8 and learner_alone(8, "cuda:0") == 2 and learner_alone(8, learner_threads=3) == 3
+    assert learner_alone(8) == 6 and learner_alone(2) == 1 and learner_alone(1) == 1
+    assert learner_alone(8, "cuda:0") == 2 and learner_alone(8, learner_threads=3) == 3
 
 
 def test_available_cores_follows_the_cpu_affinity():
