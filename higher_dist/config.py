@@ -169,6 +169,7 @@ class Config:
     weights_every: int = 20  # learner updates between weight publications
     stats_every_s: float = 2.0  # seconds between stats messages and metrics records
     checkpoint_every_s: float = 120.0  # seconds between checkpoints
+    role_grace_s: float = 30.0  # a role silent this long is dead and its number free (a link cut shorter keeps it)
     tensorboard: bool = False  # also write metrics as TensorBoard event files (needs the tensorboard extra)
 
     def to_dict(self) -> dict[str, Any]:
@@ -324,5 +325,7 @@ def validate(cfg: Config) -> None:
         value = getattr(cfg, name)
         _check(value in ("auto", "cpu", "cuda") or (value.startswith("cuda:") and value[5:].isdigit()),
                f"{name}: must be auto, cpu, cuda or cuda:N, got {value!r}")
+    _check(cfg.role_grace_s > cfg.stats_every_s,
+           f"role_grace_s: must exceed stats_every_s ({cfg.stats_every_s}: the heartbeat), got {cfg.role_grace_s}")
     _check(cfg.torch_threads >= 0, f"torch_threads: must be >= 0 (0: the layout decides), got {cfg.torch_threads}")
     _check(cfg.weights_every >= 1, f"weights_every: must be >= 1, got {cfg.weights_every}")

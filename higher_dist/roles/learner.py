@@ -64,7 +64,7 @@ class LearnerRole:
         self.agent = AgentBuilder(cfg)
         self.core = self.agent.learner_core()
         self.evaluator = BackgroundEvaluator(self.agent)
-        self.registry = RoleRegistry()
+        self.registry = RoleRegistry(dead_after_s=cfg.role_grace_s)
         self.rejects = sockets.RejectCounter()
         self.guard = HandlerGuard(self.rejects, log)
         self.weights_version = 0

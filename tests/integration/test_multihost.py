@@ -118,6 +118,9 @@ def test_secure_run_across_namespaces(cluster):
          + ", ".join(f"{row['role']} {row['id']} {row['state']}" for row in after["roles"]))
     assert all(p.running() or p.returncode == 0 for p in (learner, relabeler, actor)), watch.diagnostics()
     assert [row["id"] for row in after["roles"] if row["role"] == "actor"] == [0]  # one actor, one number
+    # The cut and the reconnect are shorter than role_grace_s: the actor is never listed dead meanwhile.
+    states = {(role_row(r, "actor", 0) or {}).get("state") for r in watch.records() if r["time"] >= at_cut["time"]}
+    assert "dead" not in states, states
 
     assert learner.wait(240) == 0, "the learner did not finish the run\n" + watch.diagnostics()
     note("learner finished the run")

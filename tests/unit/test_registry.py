@@ -56,3 +56,20 @@ def test_numbers_are_kept_per_connection_reused_after_death_and_capped():
     assert reg.seen(b"a") is None  # the dead holder's connection no longer speaks for number 0
     assert [row["id"] for row in reg.table(0) if row["role"] == "actor"] == [0, 1]  # no ghost rows
     assert reg.assign("dashboard", b"d", -1, capacity=None) == 0  # dashboards: as many as come
+
+
+def test_a_role_silent_for_less_than_the_grace_keeps_its_number():
+    from higher_dist.config import ConfigError
+    from higher_dist.config_presets import make_config
+
+    cfg = make_config("her", "small")
+    reg = RoleRegistry(dead_after_s=cfg.role_grace_s)
+    cut = reg.hello("actor", 0, b"a0", "host", 11)
+    cut.last_seen -= 13.0  # a 10-second link cut and 3 s of reconnect
+    assert reg.table(0)[0]["state"] == "alive"
+    assert reg.assign("actor", b"newcomer", -1, capacity=2) == 1  # not number 0: its holder is in its grace
+    cut.last_seen -= cfg.role_grace_s  # silent past the grace: dead, and its number is free again
+    assert reg.table(0)[0]["state"] == "dead"
+    assert reg.assign("actor", b"newcomer", -1, capacity=2) == 0
+    with pytest.raises(ConfigError, match="role_grace_s"):
+        make_config("her", "small", role_grace_s=1.0)
