@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from higher_dist.config_flags import DefaultsHelp
 from higher_dist import metrics as m
 from higher_dist.analysis.drawing import pyplot
 from higher_dist.analysis.runs import (REPLAY_KEYS, NoRun, Run, find_runs, is_number, mean_band, replay_fractions,
                                       success_key)
-from higher_dist.rundir import ensure_folder
+from higher_dist.config_flags import DefaultsHelp
+from higher_dist.paths import ensure_folder
 
 
 def plot_success(runs: list[Run], key_for, title: str, out: Path) -> Path:

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from higher_dist.config_flags import DefaultsHelp
 from higher_dist.config import COLORS, SHADES, SIZES, TYPES, ConfigError, from_dict
+from higher_dist.config_flags import DefaultsHelp
 from higher_dist.learning.episode import Episode
 from higher_dist.world.spec import SUCCESS, TIMEOUT, WRONG_PICK
 from higher_dist.world.grid import DIRECTION_VECTORS, KIND_BALL, KIND_KEY, KIND_WALL, cell_attrs

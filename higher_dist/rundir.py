@@ -17,6 +17,7 @@ import torch
 
 from higher_dist import metrics as m
 from higher_dist.config import Config
+from higher_dist.paths import ensure_folder
 
 _ND = "__ndarray__"
 
@@ -88,17 +89,6 @@ def read_metrics(path: str | os.PathLike) -> list[dict[str, Any]]:
     except FileNotFoundError:
         pass
     return out
-
-
-def ensure_folder(path: Path, flag: str) -> None:
-    """Make `path` a folder (parents too), or refuse by name with a one-line ValueError: a file in the way,
-    or a folder that cannot be made."""
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"{flag} {path}: is a file, not a folder")
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ValueError(f"{flag} {path}: cannot make this folder ({e.strerror})") from None
 
 
 def last_record(path: str | os.PathLike, max_bytes: int = 1 << 18) -> dict[str, Any] | None:

@@ -10,10 +10,10 @@ from pathlib import Path
 
 from higher_dist.config import WORLDS, ConfigError
 from higher_dist.config_flags import positive_int
+from higher_dist.paths import ensure_folder
 from higher_dist.reproduce import plan as plan_mod
 from higher_dist.reproduce.claims import write_results
 from higher_dist.reproduce.executor import Executor
-from higher_dist.rundir import ensure_folder
 from higher_dist.reproduce.figures import draw_all
 from higher_dist.reproduce.status import estimate, human_seconds
 from higher_dist.reproduce.view import make_view

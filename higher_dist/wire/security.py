@@ -32,6 +32,8 @@ import zmq
 import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
+from higher_dist.paths import ensure_folder
+
 log = logging.getLogger("higher_dist.security")
 SERVER_NAME = "server"
 ALLOWED_DIR = "allowed_clients"
@@ -64,13 +66,8 @@ def generate_keys(keys_dir: str | os.PathLike, clients: tuple[str, ...] = ("clie
     """
     root = Path(keys_dir)
     allowed = root / ALLOWED_DIR
-    for folder in (root, allowed):
-        if folder.exists() and not folder.is_dir():
-            raise ValueError(f"{folder}: is a file, not a folder for keys")
-    try:
-        allowed.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ValueError(f"{allowed}: cannot make this folder ({e.strerror})") from None
+    ensure_folder(root, "keys folder")
+    ensure_folder(allowed, "keys folder")
     # Private whatever the umask: who may join is decided by what is in these folders.
     os.chmod(root, 0o700)
     os.chmod(allowed, 0o700)

@@ -174,7 +174,7 @@ def test_override_from_dict_and_validate_name_the_field():
 # Bottom to top. A module may import its own unit (a top-level module, or a folder) and units of lower
 # layers, never a unit of its own layer or above: every arrow points down.
 LAYERS = (
-    ("config", "metrics"),
+    ("config", "metrics", "paths"),
     ("config_presets", "resume"),
     ("config_flags",),
     ("world",),
