@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from higher_dist.config import DQNConfig, NetworkConfig
+from higher_dist.config import TARGET_UPDATES, DQNConfig, NetworkConfig
 from higher_dist.learning.compiled_loss import CompiledLoss
 from higher_dist.learning.devices import resolve_device
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
@@ -146,8 +146,8 @@ class DQNLearner:
 
     def __init__(self, net_cfg: NetworkConfig, dqn_cfg: DQNConfig, device: str = "cpu",
                  spec: WorldSpec = DEFAULT_SPEC, seed: int = 0):
-        if dqn_cfg.target_update not in ("period", "polyak"):
-            raise ValueError(f"target_update: must be period or polyak, got {dqn_cfg.target_update!r}")
+        if dqn_cfg.target_update not in TARGET_UPDATES:
+            raise ValueError(f"target_update: must be one of {', '.join(TARGET_UPDATES)}, got {dqn_cfg.target_update!r}")
         self.net_cfg = net_cfg
         self.cfg = dqn_cfg
         self.device = resolve_device(device)

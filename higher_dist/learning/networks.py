@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from higher_dist.config import NetworkConfig
+from higher_dist.config import FUSIONS, NetworkConfig
 from higher_dist.world.language import PAD as PAD_ID
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
@@ -227,8 +227,8 @@ class QNetwork(nn.Module):
     def __init__(self, cfg: NetworkConfig, spec: WorldSpec = DEFAULT_SPEC):
         super().__init__()
         n_actions = spec.n_actions
-        if cfg.fusion not in ("film", "concat"):
-            raise ValueError(f"fusion: must be film or concat, got {cfg.fusion!r}")
+        if cfg.fusion not in FUSIONS:
+            raise ValueError(f"fusion: must be one of {', '.join(FUSIONS)}, got {cfg.fusion!r}")
         self.cfg = cfg
         self.n_actions = n_actions
         self.fusion = cfg.fusion
