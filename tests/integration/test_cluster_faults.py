@@ -307,6 +307,9 @@ def test_killed_learner_resumes_and_the_running_roles_rejoin_it(cluster):
     first = cluster.records()[n]
     assert first["updates"] >= ckpt["core"]["counters"]["updates"]
     assert first["frames"] >= ckpt["core"]["counters"]["frames"]
+    # The replay came back with it (in the checkpoint by default): never below what the checkpoint held.
+    assert "replay" in ckpt["core"] and ckpt["core"]["replay"]["size"] > 0
+    assert first["replay_size"] >= ckpt["core"]["replay"]["size"]
     assert after["frames"] > first["frames"]  # experience flows again through the untouched roles
     assert learner_pid(cluster.launcher) not in (None, old_pid)
 
