@@ -222,3 +222,14 @@ def test_the_cluster_panel_shows_rejects_by_reason():
     out = io.StringIO()
     Console(file=out, width=140).print(render(state))
     assert "dropped: mission_grammar 12" in out.getvalue()
+
+
+def test_the_hosts_layout_is_shown_under_the_header_when_the_learner_reports_it():
+    from higher_dist.launch.layout import plan_layout
+
+    layout = plan_layout(16).describe()
+    state = DashboardState()
+    state.update({**recorded_stream()[-1], "layout": layout}, now=0.0)
+    assert f"layout  {layout}" in export(render(state, now=0.5))
+    state.update(recorded_stream()[-1], now=1.0)  # a learner that reports none: no layout line
+    assert "layout " not in export(render(state, now=1.5))
