@@ -296,15 +296,16 @@ def test_killed_learner_resumes_and_the_running_roles_rejoin_it(cluster):
     cluster.watch.wait_until("the supervisor restarts the learner with --resume",
                              lambda: "restarting learner" in cluster.watch.log("cluster")[log_offset:], timeout=30)
     n = len(cluster.records())
+    first = cluster.watch.wait_for("a record from the resumed learner", lambda r: True, timeout=60, after=n)
 
     def rejoined(r):
-        return (r["updates"] > ckpt["core"]["counters"]["updates"] + 20
+        # With its replay restored the learner may update before any new frame arrives: wait for both.
+        return (r["updates"] > ckpt["core"]["counters"]["updates"] + 20 and r["frames"] > first["frames"]
                 and all((row := role_row(r, role, i)) is not None and row["state"] == "alive" and row["pid"] == pid
                         for (role, i), pid in others.items()))
     after = cluster.watch.wait_for("the same actors and relabeler rejoin, learning goes on", rejoined,
                                    timeout=120, after=n)
     # Counters continued from the checkpoint rather than from zero.
-    first = cluster.records()[n]
     assert first["updates"] >= ckpt["core"]["counters"]["updates"]
     assert first["frames"] >= ckpt["core"]["counters"]["frames"]
     # The replay came back with it (in the checkpoint by default): never below what the checkpoint held.
