@@ -61,7 +61,7 @@ def host_layout(cfg: Config) -> Layout:
 
 def build_roles(cfg: Config, run_dir: RunDir, endpoints: Endpoints, resume: bool, dashboard: bool,
                 security: Security, bind_host: str | None = None, layout: Layout | None = None) -> list[RoleProcess]:
-    layout = layout or plan_layout(available_cores(), cfg.actors, "cpu", cfg.torch_threads)
+    layout = layout or host_layout(cfg)
     logs = run_dir.path / "logs"
     logs.mkdir(exist_ok=True)
     requested = run_dir.path / "config.requested.json"

@@ -23,6 +23,11 @@ from higher_dist.learning.networks import QNetwork, load_weights_numpy, weights_
 __all__ = ["TransitionBatchLike", "dqn_terms", "dqn_loss", "learning_rate_at", "DQNLearner"]
 
 
+# The tensors the loss reads from a batch, and their dtypes (built once: `_tensors` runs every update).
+_BATCH_DTYPES = {"obs": torch.uint8, "mission": torch.long, "action": torch.long, "reward": torch.float32,
+                 "discount": torch.float32, "next_obs": torch.uint8, "weights": torch.float32}
+
+
 class TransitionBatchLike(Protocol):
     """What `DQNLearner.update` reads (the replay's batch satisfies it by duck typing).
 
@@ -180,8 +185,7 @@ class DQNLearner:
                                          double=dqn_cfg.double, joint_online=dqn_cfg.joint_online)
 
     def _tensors(self, batch: Any) -> dict[str, torch.Tensor]:
-        fields = {"obs": torch.uint8, "mission": torch.long, "action": torch.long, "reward": torch.float32,
-                  "discount": torch.float32, "next_obs": torch.uint8, "weights": torch.float32}
+        fields = _BATCH_DTYPES
         if self.device.type == "cpu":
             # from_numpy shares memory (no copy); `.to` converts only where the dtype differs.
             return {name: torch.from_numpy(np.ascontiguousarray(getattr(batch, name))).to(dtype)
