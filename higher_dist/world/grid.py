@@ -73,6 +73,9 @@ class StepResult:
     goal: np.ndarray  # (B, 4) int8: goal of the episode this step belonged to (ground truth)
     mission_done: np.ndarray  # (B, L) int64: mission of the episode this step belonged to
     final_dir: np.ndarray  # (B,) int64: direction reached by this step, before any reset
+    pick_step: np.ndarray  # (B,) int32: index of the step of the episode that picked `picked` (the
+    #                        pick hindsight describes), -1 if none. FetchAttr: a pick ends the episode,
+    #                        so it is length - 1 for picks; worlds where picks go on report the first.
 
     @property
     def done(self) -> np.ndarray:
@@ -303,4 +306,5 @@ class BatchedFetchAttr:
             view[finished] = self._views(finished)
         return StepResult(view=view, mission=self._mission, reward=reward, terminated=picks,
                           truncated=truncated, final_view=final_view, outcome=outcome, length=length,
-                          picked=picked, goal=goal, mission_done=mission_done, final_dir=final_dir)
+                          picked=picked, goal=goal, mission_done=mission_done, final_dir=final_dir,
+                          pick_step=np.where(picks, length - 1, -1).astype(np.int32))
