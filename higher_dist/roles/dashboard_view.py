@@ -5,7 +5,9 @@ None early in a run, and everything here renders "-" for it rather than raising.
 accuracy) are fractions in [0, 1] and are shown as percents.
 
 `DashboardState` keeps the latest record, when it arrived and short histories for the sparklines;
-`render(state)` turns it into one renderable. Keeping rendering pure lets the tests draw a recorded
+`render(state)` turns it into one renderable, laid out for the terminal's width when drawn: below
+WIDE_FROM columns the learning panel gets a row of its own and the role table short headers, so an
+80-column terminal shows every figure whole. Keeping rendering pure lets the tests draw a recorded
 stream of records into a `Console(record=True)` and read the text back.
 """
 from __future__ import annotations
@@ -156,12 +158,22 @@ def _kv_table() -> Table:
     return t
 
 
-def cluster_panel(record: dict[str, Any]) -> Panel:
-    table = Table(box=box.SIMPLE_HEAD, expand=True, pad_edge=False)
-    for name, justify in (("role", "left"), ("id", "right"), ("host", "left"), ("pid", "right"),
-                          ("state", "left"), ("heartbeat", "right"), ("frames/s", "right"),
-                          ("weights lag", "right"), ("restarts", "right"), ("rejected", "right")):
-        table.add_column(name, justify=justify, no_wrap=True)
+# The role table's columns: (wide header, narrow header, justify). Narrow headers fit 80 columns.
+CLUSTER_COLUMNS = (("role", "role", "left"), ("id", "id", "right"), ("host", "host", "left"),
+                   ("pid", "pid", "right"), ("state", "state", "left"), ("heartbeat", "beat", "right"),
+                   ("frames/s", "frames/s", "right"), ("weights lag", "lag", "right"),
+                   ("restarts", "rst", "right"), ("rejected", "rej", "right"))
+
+
+def cluster_panel(record: dict[str, Any], narrow: bool = False) -> Panel:
+    # Narrow: one space between columns and short headers, so a row fits an 80-column terminal; only
+    # the host name gives way (with an ellipsis) when it is long.
+    table = Table(box=box.SIMPLE_HEAD, expand=True, pad_edge=False,
+                  padding=(0, 1, 0, 0) if narrow else (0, 1))
+    for wide_name, narrow_name, justify in CLUSTER_COLUMNS:
+        table.add_column(narrow_name if narrow else wide_name, justify=justify,
+                         no_wrap=True, overflow="ellipsis" if wide_name == "host" else "fold",
+                         min_width=None if wide_name == "host" else len(narrow_name if narrow else wide_name))
     roles = record.get(m.ROLES)
     roles = [r for r in roles if isinstance(r, dict)] if isinstance(roles, list) else []
     roles.sort(key=lambda r: (ROLE_ORDER.get(r.get("role"), 9), r.get("id") if _is_number(r.get("id")) else 0))
@@ -288,7 +300,7 @@ def replay_panel(record: dict[str, Any], bar_width: int = 30) -> Panel:
     return Panel(Group(t, bar), title="Replay", title_align="left")
 
 
-def trends_panel(state: DashboardState) -> Panel:
+def trends_panel(state: DashboardState, width: int = SPARK_WIDTH) -> Panel:
     t = _kv_table()
     t.add_column(no_wrap=True)
     succ = list(state.success_history)
@@ -296,7 +308,7 @@ def trends_panel(state: DashboardState) -> Panel:
             ("generator acc.", list(state.generator_history), "cyan"))
     for label, values, style in rows:
         last = next((v for v in reversed(values) if _is_number(v)), None)
-        t.add_row(label, Text(sparkline(values, SPARK_WIDTH, 0.0, 1.0) or MISSING, style=style), fmt_pct(last))
+        t.add_row(label, Text(sparkline(values, width, 0.0, 1.0) or MISSING, style=style), fmt_pct(last))
     return Panel(t, title=f"Trends (last {len(succ)} records, scale 0-100%)", title_align="left")
 
 
@@ -321,14 +333,42 @@ def header(state: DashboardState, now: float | None = None) -> RenderableType:
     return line
 
 
-def render(state: DashboardState, now: float | None = None) -> RenderableType:
-    """The whole dashboard for the state's latest record (now: a time.monotonic() value, for tests)."""
+# Below this width the three middle panels cannot sit side by side without cutting figures (a frames
+# count against its budget alone takes 21 columns and more), so the learning panel takes a row of its own.
+WIDE_FROM = 140
+
+
+class Dashboard:
+    """The whole dashboard, laid out for the width it is drawn in (rich passes it at render time)."""
+
+    def __init__(self, state: DashboardState, now: float | None = None):
+        self.state, self.now = state, now
+
+    def __rich_console__(self, console, options):
+        yield layout(self.state, self.now, narrow=options.max_width < WIDE_FROM)
+
+
+def layout(state: DashboardState, now: float | None, narrow: bool) -> RenderableType:
     r = state.record
+    panels = [learning_panel(r), relabeler_panel(r), replay_panel(r)]
     middle = Table.grid(expand=True, padding=(0, 1))
-    for _ in range(3):
+    if narrow:  # learning alone, then relabeler and replay side by side
         middle.add_column(ratio=1)
-    middle.add_row(learning_panel(r), relabeler_panel(r), replay_panel(r))
-    body = Group(header(state, now), cluster_panel(r), middle, trends_panel(state))
+        middle.add_column(ratio=1)
+        rows = Group(panels[0], middle)
+        middle.add_row(*panels[1:])
+    else:
+        for _ in range(3):
+            middle.add_column(ratio=1)
+        middle.add_row(*panels)
+        rows = middle
+    spark = SPARK_WIDTH if not narrow else SPARK_WIDTH // 2
+    body = Group(header(state, now), cluster_panel(r, narrow), rows, trends_panel(state, spark))
     if state.is_stale(now):
         return Panel(body, border_style="red", title="STALE", title_align="right")
     return body
+
+
+def render(state: DashboardState, now: float | None = None) -> RenderableType:
+    """The whole dashboard for the state's latest record (now: a time.monotonic() value, for tests)."""
+    return Dashboard(state, now)

@@ -233,3 +233,21 @@ def test_the_hosts_layout_is_shown_under_the_header_when_the_learner_reports_it(
     assert f"layout  {layout}" in export(render(state, now=0.5))
     state.update(recorded_stream()[-1], now=1.0)  # a learner that reports none: no layout line
     assert "layout " not in export(render(state, now=1.5))
+
+
+@pytest.mark.parametrize("width", [80, 100, 139, 140, 200])
+def test_an_80_column_terminal_shows_frames_eta_and_the_role_table_uncut(width):
+    state = DashboardState()
+    records = recorded_stream()
+    records[-1] = dict(records[-1], frames=12_345_678, frames_budget=100_000_000, frames_per_s=1500.0)
+    for k, record in enumerate(records):
+        state.update(record, now=100.0 + k)
+    console = Console(record=True, width=width, file=io.StringIO(), color_system=None)
+    console.print(render(state, now=110.0))
+    text = console.export_text()
+    assert max(len(line) for line in text.splitlines()) <= width
+    assert "12,345,678 / 100,000,000" in text  # the frames count against its budget
+    assert "ETA               16h13m56s" in text  # 87,654,322 frames to go at 1,500/s
+    assert "…" not in text  # nothing cut: roles, hosts, pids and states are whole
+    for cell in ("relabeler", "GONE (dead)", "4321", "nodeB", "812/s", "50.0% ± 3.1", "81.2%", "40.0%"):
+        assert cell in text
