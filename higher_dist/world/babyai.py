@@ -1,0 +1,295 @@
+"""BabyAI's pickup levels (Farama Minigrid) behind the batched interface of `BatchedFetchAttr`.
+
+A batch is B unwrapped minigrid envs stepped one after the other; what this module adds is the
+batch's arrays, auto-reset, the episode bookkeeping hindsight needs (the first object picked up and
+when) and the translation of missions into `babyai_language` word ids.
+
+Views. Minigrid's image is (V, V, 3) indexed [x, y]; ours are (V, V, 4) uint8 indexed [row, col,
+channel], so a BabyAI view is the image transposed plus a 4th channel that is always 0: the same
+layout as FetchAttr's views. Channels: minigrid's object index (0..10), colour index (0..5) and
+state (0..2). The agent is at row V-1, column V//2, facing up; while it carries an object, minigrid
+draws that object in the agent's own cell.
+
+Episodes. Outside strict mode a wrong pickup does not end a BabyAI episode: the agent carries the
+object on, may drop it and pick up another. An episode ends on the mission's pickup (terminated,
+outcome SUCCESS, reward 1 - 0.9 * steps / max_steps) or at the level's step limit (truncated,
+outcome TIMEOUT). A step that does both counts as a success only. `picked` / `pick_step` report the
+first pickup of the episode (the one hindsight describes).
+
+Seeds. Env i is reset the first time with the seed `default_rng([seed, i]).integers(2**31 - 1)`
+(or `default_rng(env_seeds[i])`) and afterwards without one, continuing its own generator: env i of
+a batch replays a single `gym.make(level_id)` env reset once with that seed.
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+from dataclasses import dataclass
+from functools import lru_cache
+
+import gymnasium as gym
+import minigrid  # noqa: F401  (registers the BabyAI-* ids with gymnasium)
+import numpy as np
+from minigrid.envs.babyai.core.verifier import PickupInstr
+
+from higher_dist.world import babyai_language as lang
+from higher_dist.world.grid import StepResult
+from higher_dist.world.spec import RUNNING, SUCCESS, TIMEOUT
+
+BABYAI_ACTION_NAMES = ("left", "right", "forward", "pickup", "drop", "toggle", "done")
+N_BABYAI_ACTIONS = len(BABYAI_ACTION_NAMES)
+ACTION_PICKUP = 3
+CHANNEL_VALUES = (11, 6, 3, 1)  # distinct values per view channel: object, colour, state, unused
+_PROBE_SEED = 0
+_COLOR_INDEX = {c: i for i, c in enumerate(lang.COLORS)}
+_TYPE_INDEX = {t: i for i, t in enumerate(lang.TYPES)}
+
+
+@contextlib.contextmanager
+def _quiet():
+    """Minigrid prints every rejected level sample to stdout; in a role's log that is a flood."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        yield
+
+
+def _probe(level_id: str):
+    """A fresh unwrapped env of `level_id`, reset once with a fixed seed."""
+    env = gym.make(level_id).unwrapped
+    with _quiet():
+        env.reset(seed=_PROBE_SEED)
+    return env
+
+
+def _only_pickup_missions(env) -> bool:
+    """Whether every episode of this level is a lone, non-strict pickup.
+
+    A level generator (LevelGen) draws its instruction kinds per episode, so one seed's mission says
+    nothing about the next: require its kinds to be pickup actions only. Strict levels (the *Debug
+    variants) end the episode on a wrong pickup, which the episode model above does not have."""
+    instrs = getattr(env, "instrs", None)
+    if type(instrs) is not PickupInstr or instrs.strict:
+        return False
+    if hasattr(env, "action_kinds"):
+        return set(env.action_kinds) == {"pickup"} and set(env.instr_kinds) == {"action"}
+    return True
+
+
+@lru_cache(maxsize=None)
+def pickup_levels() -> tuple[str, ...]:
+    """The registered `BabyAI-*` ids whose missions are all non-strict "pick up ..." instructions."""
+    levels = []
+    for level_id in sorted(k for k in gym.registry if k.startswith("BabyAI-")):
+        if _only_pickup_missions(_probe(level_id)):
+            levels.append(level_id)
+    return tuple(levels)
+
+
+def is_pickup_level(name: str) -> bool:
+    return name in pickup_levels()
+
+
+@dataclass(frozen=True)
+class LevelFacts:
+    """What the rest of the system needs to know about a level before running it."""
+    level_id: str
+    view_size: int
+    max_steps: int
+    n_actions: int
+    has_locations: bool  # missions may name a location ("... on your left"): LevelGen's `locations`
+    room_size: int
+    grid_width: int
+    grid_height: int
+
+
+@lru_cache(maxsize=None)
+def level_facts(level_id: str) -> LevelFacts:
+    if not is_pickup_level(level_id):
+        known = "known" if level_id in gym.registry else "unknown"
+        raise ValueError(f"level {level_id!r} ({known} id) is not a BabyAI pickup level; "
+                         f"pickup levels: {', '.join(pickup_levels())}")
+    env = _probe(level_id)
+    return LevelFacts(level_id=level_id, view_size=int(env.observation_space["image"].shape[0]),
+                      max_steps=int(env.max_steps), n_actions=int(env.action_space.n),
+                      has_locations=bool(getattr(env, "locations", False)),
+                      room_size=int(env.room_size), grid_width=int(env.width), grid_height=int(env.height))
+
+
+class BatchedBabyAI:
+    """B envs of one BabyAI pickup level stepped together; finished ones are reset in place by `step`.
+
+    Arrays handed out (views, missions, goals, picks) are never written to afterwards: state arrays
+    are replaced, not edited, so callers may keep them without copying.
+    """
+
+    def __init__(self, level_id: str, batch_size: int, seed: int = 0, env_seeds=None):
+        if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+            raise ValueError(f"batch_size: must be an integer >= 1, got {batch_size!r}")
+        self.facts = level_facts(level_id)
+        self.level_id, self.batch_size = level_id, int(batch_size)
+        self.view_size, self.max_steps = self.facts.view_size, self.facts.max_steps
+        self._envs = [gym.make(level_id).unwrapped for _ in range(self.batch_size)]
+        self._init_seeds(seed, env_seeds)
+        b, v = self.batch_size, self.view_size
+        self._images: list[np.ndarray] = [np.zeros((v, v, 3), np.uint8)] * b  # minigrid's, [x, y]
+        self._steps = np.zeros(b, dtype=np.int32)
+        self._mission = np.zeros((b, lang.MISSION_LEN), dtype=np.int64)
+        self._goal = np.full((b, 4), -1, dtype=np.int8)
+        self._picked = np.full((b, 4), -1, dtype=np.int8)
+        self._pick_step = np.full(b, -1, dtype=np.int32)
+        self._missions_seen: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._started = False
+
+    # ----------------------------------------------------------------------------------- seeding
+
+    def _init_seeds(self, seed, env_seeds) -> None:
+        if env_seeds is None:
+            env_seeds = [[int(seed), i] for i in range(self.batch_size)]
+        elif len(env_seeds) != self.batch_size:
+            raise ValueError(f"env_seeds: needs one seed per env ({self.batch_size}), got {len(env_seeds)}")
+        # The seed of each env's first reset; None once used, so later resets continue its generator.
+        self._first_seeds = [int(np.random.default_rng(s).integers(2**31 - 1)) for s in env_seeds]
+
+    # ------------------------------------------------------------------------------ observations
+
+    def _to_views(self, images) -> np.ndarray:
+        v = self.view_size
+        out = np.zeros((len(images), v, v, 4), dtype=np.uint8)
+        out[..., :3] = np.stack(images).transpose(0, 2, 1, 3)
+        return out
+
+    def view(self) -> np.ndarray:
+        """The current observation of every env, (B, V, V, 4) uint8."""
+        return self._to_views(self._images)
+
+    @property
+    def mission(self) -> np.ndarray:
+        return self._mission
+
+    @property
+    def goal(self) -> np.ndarray:
+        return self._goal
+
+    @property
+    def steps(self) -> np.ndarray:
+        return self._steps.copy()
+
+    @property
+    def agent_dir(self) -> np.ndarray:
+        """(B,) minigrid directions: 0 right (+x), 1 down (+y), 2 left, 3 up."""
+        return np.array([env.agent_dir for env in self._envs], dtype=np.int64)
+
+    @property
+    def envs(self) -> list:
+        """The unwrapped minigrid envs (for tests, rendering and debugging; do not step them)."""
+        return self._envs
+
+    def render_rgb(self, env_index: int, tile_size: int = 16) -> np.ndarray:
+        """Minigrid's own full-level RGB frame of env `env_index`, (H, W, 3) uint8."""
+        return self._envs[env_index].get_frame(highlight=True, tile_size=tile_size)
+
+    # ---------------------------------------------------------------------------------- resetting
+
+    def reset(self, seed: int | None = None):
+        """Start a new episode in every env; `seed` re-seeds all envs by the (seed, i) scheme.
+        Returns (view (B, V, V, 4) uint8, mission (B, L) int64)."""
+        if seed is not None:
+            self._init_seeds(seed, None)
+        self._reset_envs(range(self.batch_size))
+        self._started = True
+        return self.view(), self._mission
+
+    def _encode_mission(self, text: str) -> tuple[np.ndarray, np.ndarray]:
+        known = self._missions_seen.get(text)
+        if known is None:
+            try:
+                tokens = lang.encode(text)
+            except ValueError as error:
+                raise ValueError(f"level {self.level_id}: mission {text!r} does not encode: {error}") from None
+            goal = lang.parse(tokens)
+            if goal is None:
+                raise ValueError(f"level {self.level_id}: mission {text!r} is not a pickup sentence")
+            known = self._missions_seen[text] = (tokens, goal)
+        return known
+
+    def _reset_envs(self, envs) -> None:
+        """New episodes for `envs` (indices); replaces the per-episode state arrays."""
+        self._mission, self._goal = self._mission.copy(), self._goal.copy()
+        self._picked, self._pick_step = self._picked.copy(), self._pick_step.copy()
+        with _quiet():
+            for i in envs:
+                env, seed = self._envs[i], self._first_seeds[i]
+                self._first_seeds[i] = None
+                obs, _ = env.reset(seed=seed)
+                self._images[i] = obs["image"]
+                self._mission[i], self._goal[i] = self._encode_mission(env.mission)
+        envs = list(envs)
+        self._steps[envs] = 0
+        self._picked[envs] = -1
+        self._pick_step[envs] = -1
+
+    # ------------------------------------------------------------------------------------ stepping
+
+    def _check_actions(self, actions) -> np.ndarray:
+        a = np.asarray(actions)
+        if a.dtype.kind not in "iu":
+            raise ValueError(f"actions: must be integers, got dtype {a.dtype}")
+        if a.shape != (self.batch_size,):
+            raise ValueError(f"actions: must have shape ({self.batch_size},), got {a.shape}")
+        if a.min() < 0 or a.max() >= N_BABYAI_ACTIONS:
+            raise ValueError(f"actions: must be in 0..{N_BABYAI_ACTIONS - 1} "
+                             f"({', '.join(BABYAI_ACTION_NAMES)}), got values {np.unique(a).tolist()}")
+        return a
+
+    @staticmethod
+    def _pick_attrs(env) -> tuple[int, int, int, int]:
+        """(color, type, -1, plural) of the object `env` just picked up. Plural: another object in
+        the level has its colour and type, so the level itself would say "a", not "the"."""
+        obj = env.carrying
+        twins = sum(1 for cell in env.grid.grid
+                    if cell is not None and cell.type == obj.type and cell.color == obj.color)
+        return _COLOR_INDEX[obj.color], _TYPE_INDEX[obj.type], -1, int(twins > 0)
+
+    def step(self, actions) -> StepResult:
+        """Apply one action per env; finished envs start a new episode in place (see StepResult)."""
+        if not self._started:
+            raise RuntimeError("BatchedBabyAI.step: call reset() first")
+        acts = self._check_actions(actions).tolist()
+        images, envs, steps = self._images, self._envs, self._steps
+        rewards, ended, dirs, picks = [], [], [], []
+        for i, env in enumerate(envs):
+            empty_handed = env.carrying is None
+            obs, reward, terminated, truncated, _ = env.step(acts[i])
+            images[i] = obs["image"]
+            rewards.append(reward)
+            dirs.append(env.agent_dir)
+            if terminated or truncated:
+                ended.append((i, bool(terminated)))
+            if empty_handed and env.carrying is not None:
+                picks.append(i)
+        steps += 1
+        b = self.batch_size
+        reward = np.array(rewards, dtype=np.float32)
+        terminated, truncated = np.zeros(b, dtype=bool), np.zeros(b, dtype=bool)
+        outcome = np.full(b, RUNNING, dtype=np.int8)
+        for i, success in ended:
+            (terminated if success else truncated)[i] = True
+            outcome[i] = SUCCESS if success else TIMEOUT
+        firsts = [i for i in picks if self._pick_step[i] < 0]
+        if firsts:
+            self._picked, self._pick_step = self._picked.copy(), self._pick_step.copy()
+            for i in firsts:
+                self._picked[i] = self._pick_attrs(envs[i])
+                self._pick_step[i] = steps[i] - 1
+        final_view = self._to_views(images)
+        length, goal, mission_done = steps.copy(), self._goal, self._mission
+        picked, pick_step = self._picked, self._pick_step
+        view = final_view
+        if ended:
+            finished = [i for i, _ in ended]
+            self._reset_envs(finished)
+            view = final_view.copy()
+            view[finished] = self._to_views([images[i] for i in finished])
+        return StepResult(view=view, mission=self._mission, reward=reward, terminated=terminated,
+                          truncated=truncated, final_view=final_view, outcome=outcome, length=length,
+                          picked=picked, goal=goal, mission_done=mission_done,
+                          final_dir=np.array(dirs, dtype=np.int64), pick_step=pick_step)
