@@ -121,13 +121,20 @@ class BatchedBabyAI:
     are replaced, not edited, so callers may keep them without copying.
     """
 
-    def __init__(self, level_id: str, batch_size: int, seed: int = 0, env_seeds=None):
-        if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
-            raise ValueError(f"batch_size: must be an integer >= 1, got {batch_size!r}")
+    def __init__(self, level_id: str, batch_size: int, seed: int = 0, env_seeds=None,
+                 max_steps: int | None = None):
+        """`max_steps`: the episode step limit, None for the level's own; it also scales the
+        success reward, 1 - 0.9 * steps / max_steps, as in minigrid."""
+        for name, value in (("batch_size", batch_size), ("max_steps", 1 if max_steps is None else max_steps)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name}: must be an integer >= 1, got {value!r}")
         self.facts = level_facts(level_id)
         self.level_id, self.batch_size = level_id, int(batch_size)
-        self.view_size, self.max_steps = self.facts.view_size, self.facts.max_steps
-        self._envs = [gym.make(level_id).unwrapped for _ in range(self.batch_size)]
+        self.view_size = self.facts.view_size
+        self.max_steps = self.facts.max_steps if max_steps is None else int(max_steps)
+        # Every pickup level takes `max_steps` and then keeps it fixed instead of deriving it per episode.
+        kwargs = {} if max_steps is None else {"max_steps": self.max_steps}
+        self._envs = [gym.make(level_id, **kwargs).unwrapped for _ in range(self.batch_size)]
         self._init_seeds(seed, env_seeds)
         b, v = self.batch_size, self.view_size
         self._images: list[np.ndarray] = [np.zeros((v, v, 3), np.uint8)] * b  # minigrid's, [x, y]

@@ -105,6 +105,18 @@ def test_batched_steps_equal_minigrid_stepped_one_by_one(level):
     assert outcomes == {SUCCESS, TIMEOUT}  # the walk crossed episode boundaries of both kinds
 
 
+def test_max_steps_overrides_the_levels_limit():
+    world = BatchedBabyAI("BabyAI-PickupDist-v0", 2, seed=1, max_steps=5)
+    assert world.max_steps == 5 and world.envs[0].max_steps == 5
+    world.reset()
+    for _ in range(5):
+        result = world.step(np.zeros(2, dtype=np.int64))  # turning never succeeds
+    assert result.truncated.all() and (result.outcome == TIMEOUT).all() and (result.length == 5).all()
+    assert (world.steps == 0).all()
+    with pytest.raises(ValueError, match="max_steps"):
+        BatchedBabyAI("BabyAI-PickupDist-v0", 2, max_steps=0)
+
+
 def test_env_seeds_choose_each_envs_stream():
     a = BatchedBabyAI("BabyAI-PickupDist-v0", 3, seed=5)
     b = BatchedBabyAI("BabyAI-PickupDist-v0", 1, env_seeds=[[5, 2]])
