@@ -28,21 +28,30 @@ def _network_flags(p: argparse.ArgumentParser) -> None:
     _security_flags(p, binds=True)
 
 
-def _security_flags(p: argparse.ArgumentParser, binds: bool) -> None:
+def _security_flags(p: argparse.ArgumentParser, binds: bool, connects: bool = False) -> None:
     p.add_argument("--keys", default=None, metavar="DIR",
                    help="CURVE keys folder (from higher-keys): encrypt every socket, admit only listed clients")
+    if connects:
+        p.add_argument("--key", default=None, metavar="NAME",
+                       help="the client pair NAME.key_secret in --keys to connect with (default: the pair named "
+                            "after the role, else the folder's only pair, else 'client')")
     if binds:
         p.add_argument("--insecure", action="store_true",
                        help="allow binding beyond loopback without --keys (anyone reaching the ports joins the run)")
 
 
-def _security(args: argparse.Namespace):
-    """The Security of a role's flags; a --keys folder that is not there is refused by name."""
+def _security(args: argparse.Namespace, role: str = "client"):
+    """The Security of a role's flags; a --keys folder that is not there is refused by name, and so is
+    a client key pair that cannot be chosen (several, none named after the role: --key)."""
     from higher_dist.wire.security import Security
 
     if args.keys is not None and not Path(args.keys).is_dir():
         raise ConfigError(f"--keys {args.keys}: no such folder (make one with higher-keys)")
-    return Security(args.keys, insecure=getattr(args, "insecure", False))
+    security = Security(args.keys, insecure=getattr(args, "insecure", False), client_name=getattr(args, "key", None),
+                        role=role)
+    if args.keys is not None and role != "client":
+        security.client()  # the pair it would use exists and is unambiguous, or a one-line refusal now
+    return security
 
 
 def _run(prog: str, build: Callable[[], int]) -> int:
@@ -130,7 +139,7 @@ def learner_main(argv: list[str] | None = None) -> int:
 
 def _role_flags(p: argparse.ArgumentParser, binds: bool = False) -> None:
     p.add_argument("--learner", required=True, help="the learner's control endpoint, tcp://HOST:PORT")
-    _security_flags(p, binds=binds)
+    _security_flags(p, binds=binds, connects=True)
     p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: the run's)")
 
 
@@ -153,7 +162,8 @@ def relabeler_main(argv: list[str] | None = None) -> int:
 
             parse_endpoint(args.advertise)
         return run_relabeler(args.learner, state_dir=args.state_dir, resume=args.resume, bind_host=args.bind_host,
-                             security=_security(args), threads=args.threads, advertise=args.advertise)
+                             security=_security(args, "relabeler"), threads=args.threads,
+                             advertise=args.advertise)
 
     return _run("higher-relabeler", go)
 
@@ -169,7 +179,8 @@ def actor_main(argv: list[str] | None = None) -> int:
     def go() -> int:
         from higher_dist.roles.actor import run_actor
 
-        return run_actor(args.learner, actor_id=args.actor_id, security=_security(args), threads=args.threads)
+        return run_actor(args.learner, actor_id=args.actor_id, security=_security(args, "actor"),
+                         threads=args.threads)
 
     return _run("higher-actor", go)
 
@@ -179,7 +190,7 @@ def dashboard_main(argv: list[str] | None = None) -> int:
                                 formatter_class=DefaultsHelp)
     p.add_argument("--learner", required=True, help="the learner's control endpoint, tcp://HOST:PORT")
     p.add_argument("--seconds", type=float, default=None, help="exit after this long")
-    _security_flags(p, binds=False)
+    _security_flags(p, binds=False, connects=True)
     args = p.parse_args(argv)
 
     def go() -> int:
@@ -187,7 +198,7 @@ def dashboard_main(argv: list[str] | None = None) -> int:
         from higher_dist.roles.dashboard import run_dashboard
 
         return run_dashboard(Endpoints.from_control(args.learner).telemetry, stop_after_s=args.seconds,
-                             security=_security(args))
+                             security=_security(args, "dashboard"))
 
     return _run("higher-dashboard", go)
 
@@ -266,12 +277,24 @@ def keys_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-keys", description="Make CURVE key pairs for a multi-host cluster.",
                                 formatter_class=DefaultsHelp)
     p.add_argument("dir", help="folder to write server and client keys into")
+    p.add_argument("--client", default=None, metavar="NAME",
+                   help="make the key pair of one host or role, NAME.key(_secret), listed in allowed_clients/ "
+                        "with --role (default: one 'client' pair shared by every host, which may take any role)")
+    p.add_argument("--role", default=None, metavar="ROLES",
+                   help="what --client's key may be: actor, relabeler, a comma-separated list, or any "
+                        "(required with --client)")
     args = p.parse_args(argv)
+    from higher_dist.wire.allowlist import parse_roles
     from higher_dist.wire.security import generate_keys
 
     try:
-        generate_keys(args.dir)
+        if (args.client is None) != (args.role is None):
+            raise ValueError("--client NAME and --role ROLES go together (or neither: the shared 'client' pair)")
+        roles = parse_roles(args.role) if args.role is not None else None
+        made = generate_keys(args.dir, clients=(args.client or "client",), roles=roles)
     except ValueError as e:
         return _die("higher-keys", str(e))
-    print(f"keys written to {args.dir}")
+    name = args.client or "client"
+    print(f"keys written to {args.dir}: {made[name]}, its secret {name}.key_secret and its allow-list entry "
+          f"(roles: {args.role or 'any'}); copy server.key and this pair to the host that runs it")
     return 0

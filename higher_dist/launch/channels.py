@@ -129,8 +129,9 @@ def open_channel(ctx: zmq.Context, name: str, side: Literal["bind", "connect"], 
     """A socket on channel `name`: bound (the channel's binder) or connected (one of its connectors).
 
     endpoint: the advertised tcp://HOST:PORT; a binder binds it on `bind_host` instead of HOST if given.
-    Under keys the binder is a CURVE server whose context authenticates clients against the allow-list,
-    and a connector a CURVE client; without keys, a bind beyond loopback needs security.insecure.
+    Under keys the binder is a CURVE server whose context authenticates clients against the allow-list
+    (admitting only keys whose roles include one of the channel's connectors), and a connector a CURVE
+    client; without keys, a bind beyond loopback needs security.insecure.
     """
     channel = CHANNELS.get(name)
     if channel is None:
@@ -139,7 +140,8 @@ def open_channel(ctx: zmq.Context, name: str, side: Literal["bind", "connect"], 
         address = bind_address(endpoint, bind_host)
         check_exposure({name: address}, security)
         return sockets.make_socket(ctx, channel.bind_kind, bind=address, hwm=channel.bind_hwm,
-                                   kernel_buffer_bytes=channel.kernel_buffer, curve=security.server(ctx))
+                                   kernel_buffer_bytes=channel.kernel_buffer,
+                                   curve=security.server(ctx, name, channel.connectors))
     if side == "connect":
         return sockets.make_socket(ctx, channel.connect_kind, connect=endpoint, hwm=channel.connect_hwm,
                                    kernel_buffer_bytes=channel.kernel_buffer, conflate=channel.conflate,

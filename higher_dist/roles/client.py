@@ -101,6 +101,9 @@ class ControlClient:
                 self.stop_reason = msg.fields.get("reason") or "stop"
             elif msg.type == "refuse" and msg.fields["reason"] == REJOIN:
                 self.send("hello", self._hello)  # the learner restarted: join it again
+            elif msg.type == "refuse":  # e.g. this host's key was revoked: the role ends, saying why
+                self.stop_reason = f"refused by the learner: {msg.fields['reason']}"
+                logging.getLogger(f"higher.{self.role}").error("%s", self.stop_reason)
 
     def heartbeat(self, counters: dict[str, float], state: str = "running") -> None:
         """At most one heartbeat a period while running; a change of state goes at once."""

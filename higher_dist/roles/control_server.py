@@ -7,6 +7,12 @@ episodes address (the actor sends there), so early actors are kept in `pending` 
 peer that speaks another protocol version cannot be decoded but is told why; a peer that never said
 hello (the learner restarted since) is asked to say it again (`REJOIN`). Replies never block: a peer
 that does not read its socket loses the reply and asks again.
+
+Under --keys every message carries the public key its sender's handshake proved, and the allow-list
+(wire/allowlist.py, read again at most once a second) says which roles that key may take: a hello as
+another role, or a `register` of the relabeler's address from a key that may not be the relabeler, is
+refused with the reason and counted (`role_not_allowed`); a message from a key removed from the list
+since its handshake is refused and counted (`key_revoked`), and its role is marked stopped.
 """
 from __future__ import annotations
 
@@ -30,6 +36,7 @@ class ControlServer:
                  bind_host: str | None, registry: RoleRegistry, rejects: sockets.RejectCounter):
         self.cfg, self.endpoints, self.registry, self.rejects = cfg, endpoints, registry, rejects
         self.sock = open_channel(ctx, "control", "bind", endpoints.control, security, bind_host)
+        self.allow_list = security.allow_list()  # None without keys: loopback, every role allowed
         self.relabeler_endpoint: str | None = None
         self.pending: list[tuple[bytes, int]] = []  # actors' hellos waiting for the relabeler
 
@@ -52,12 +59,33 @@ class ControlServer:
         for _ in range(limit):
             if not self.sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
                 return
-            routed = sockets.recv_routed(self.sock, 0, self.rejects, "control", self.refuse_version)
+            routed = sockets.recv_routed_from(self.sock, 0, self.rejects, "control", self.refuse_version)
             if routed is not None:
                 guard(routed[1], self.handle, *routed)
 
-    def handle(self, identity: bytes, msg) -> None:
+    def refuse(self, identity: bytes, reason: str, detail: str) -> None:
+        """A refusal the peer is told and the learner counts; never fatal to either."""
+        self.rejects.add(reason, detail, "control")
+        self.send(identity, "refuse", {"reason": detail})
+
+    def handle(self, identity: bytes, msg, key: str = "") -> None:
+        grant = None
+        if self.allow_list is not None:
+            grant = self.allow_list.grant(key)
+            if grant is None:  # listed at its handshake, deleted from allowed_clients/ since
+                info = self.registry.seen(identity)
+                if info is not None:
+                    info.stopped = True
+                self.refuse(identity, "key_revoked", f"this key ({key}) is no longer in the learner's "
+                            "allowed_clients/: it was revoked")
+                return
         if msg.type == "hello":
+            role = msg.fields["role"]
+            if grant is not None and role in ROLE_KINDS and not grant.may(role):
+                self.refuse(identity, "role_not_allowed", f"the key {grant.name!r} may take the role(s) "
+                            f"{grant.describe()}, not {role}; give this host a {role} key (higher-keys DIR "
+                            f"--client NAME --role {role}) and list it in the learner's allowed_clients/")
+                return
             self.hello(identity, msg.fields)
             return
         info = self.registry.seen(identity)
@@ -68,6 +96,11 @@ class ControlServer:
             return
         f = msg.fields
         if msg.type == "register":  # repeated by the relabeler, so a restarted learner learns it again
+            if info.role != "relabeler" or (grant is not None and not grant.may("relabeler")):
+                who = f"the key {grant.name!r} ({grant.describe()})" if grant is not None else f"a {info.role}"
+                self.refuse(identity, "role_not_allowed", f"{who} may not register the relabeler's address; "
+                            "only the relabeler, with a key that may take that role, registers it")
+                return
             self.register(info.role, f["endpoint"])
         elif msg.type == "heartbeat":
             info.stopped = f["state"] == "stopping"

@@ -181,6 +181,14 @@ def recv_message(socket: zmq.Socket, timeout_ms: int = 0, counter: RejectCounter
 def recv_routed(socket: zmq.Socket, timeout_ms: int = 0, counter: RejectCounter | None = None,
                 where: str = "", on_reject: OnReject | None = None) -> tuple[bytes, Message] | None:
     """ROUTER side: (peer identity, message), or None as recv_message."""
+    routed = recv_routed_from(socket, timeout_ms, counter, where, on_reject)
+    return None if routed is None else routed[:2]
+
+
+def recv_routed_from(socket: zmq.Socket, timeout_ms: int = 0, counter: RejectCounter | None = None,
+                     where: str = "", on_reject: OnReject | None = None) -> tuple[bytes, Message, str] | None:
+    """As recv_routed, plus the sender's user id: the public key its CURVE handshake proved, where the
+    channel's authenticator gives one (wire/security.py), else ""."""
     frames = _recv_frames(socket, timeout_ms)
     if frames is None:
         return None
@@ -189,7 +197,13 @@ def recv_routed(socket: zmq.Socket, timeout_ms: int = 0, counter: RejectCounter 
         return None
     identity = frames[0].bytes
     msg = _decode_or_count(frames[1:], counter or REJECTS, where, on_reject, identity)
-    return None if msg is None else (identity, msg)
+    if msg is None:
+        return None
+    try:
+        user_id = frames[1].get("User-Id") or ""
+    except zmq.ZMQError:  # no user id on this connection (no keys)
+        user_id = ""
+    return identity, msg, user_id
 
 
 def recv_weights(socket: zmq.Socket, expected: Mapping[str, Sequence[int]] | None = None, timeout_ms: int = 0,

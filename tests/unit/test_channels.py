@@ -194,7 +194,7 @@ def test_missing_key_files_are_named(ctx, tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="allowed_clients holds no client keys"):
         open_channel(ctx, "control", "bind", f"tcp://127.0.0.1:{free_base_port()}", Security(str(tmp_path / "empty")))
-    with pytest.raises(ValueError, match="client.key_secret is missing"):
+    with pytest.raises(ValueError, match="no client key pair"):
         open_channel(ctx, "control", "connect", "tcp://127.0.0.1:1", Security(str(tmp_path / "empty")))
 
 

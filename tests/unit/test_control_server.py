@@ -111,7 +111,9 @@ def test_a_peer_that_never_said_hello_is_asked_to_say_it_and_an_actor_cannot_reg
     late.hello(index=1)
     late.send("register", {"role": "relabeler", "endpoint": "tcp://10.0.0.7:6000"})
     pump()
-    assert server.relabeler_endpoint is None and server.rejects.counts()["field"] == 1
+    assert server.relabeler_endpoint is None and server.rejects.counts()["role_not_allowed"] == 1
+    refusal = late.reply()
+    assert refusal.type == "refuse" and "may not register the relabeler's address" in refusal.fields["reason"]
     assert guard.errors == 0
 
 
