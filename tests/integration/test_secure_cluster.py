@@ -70,3 +70,27 @@ def test_cluster_with_keys_trains_and_only_keyed_dashboards_read_it(tmp_path):
         assert watch.records()[-1]["frames"] >= 2000
     finally:
         watch.cleanup()
+
+
+def test_a_cluster_with_a_key_per_role_runs_and_an_actors_key_cannot_be_its_relabeler(tmp_path):
+    keys = tmp_path / "keys"
+    for name in ("relabeler", "actor"):  # each role picks the pair named after it; no shared pair
+        generate_keys(keys, clients=(name,), roles=frozenset({name}))
+    assert not (keys / "client.key_secret").exists()
+    watch, launcher, port = start_cluster(tmp_path / "run", tmp_path, frames=2000, actors=1,
+                                          extra=["--keys", str(keys)])
+    try:
+        first = watch.wait_for("frames with per-role keys", lambda r: r["frames"] > 0, timeout=150)
+        assert first["frames"] > 0
+        control = Endpoints.from_base("127.0.0.1", port).control
+        impostor = subprocess.run(entry("relabeler", "--learner", control, "--keys", keys, "--key", "actor",
+                                        "--state-dir", tmp_path / "impostor"),
+                                  capture_output=True, text=True, timeout=120)
+        assert impostor.returncode == 2, impostor.stderr
+        assert "the key 'actor' may take the role(s) actor, not relabeler" in impostor.stderr
+        assert launcher.wait(240) == 0, watch.diagnostics()
+        last = watch.records()[-1]
+        assert last["frames"] >= 2000
+        assert last["rejects_by_reason"].get("role_not_allowed", 0) >= 1  # counted by the learner
+    finally:
+        watch.cleanup()
