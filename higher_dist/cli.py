@@ -209,6 +209,8 @@ def run_main(argv: list[str] | None = None) -> int:
     add_config_flags(p)
     p.add_argument("--run-dir", required=True)
     p.add_argument("--metrics-every", type=positive_int, default=10_000, help="frames between metric lines")
+    p.add_argument("--resume", action="store_true",
+                   help="refused: higher-run keeps no checkpoint (use higher-cluster for runs that resume)")
     args = p.parse_args(argv)
 
     def go() -> int:
@@ -219,6 +221,13 @@ def run_main(argv: list[str] | None = None) -> int:
 
         from higher_dist.launch.layout import available_cores
 
+        if args.resume:
+            from higher_dist.resume import saved_config
+
+            saved_config(args.run_dir)  # not a run directory: said as higher-cluster --resume says it
+            raise ConfigError(f"--resume: higher-run keeps no checkpoint (learning/runner.py saves neither "
+                              f"network nor replay), so {args.run_dir} cannot be continued; start a new --run-dir, "
+                              "or use higher-cluster, whose runs resume")
         cfg = config_from_args(args)
         if args.print_config:
             print(cfg.to_json())
