@@ -18,7 +18,15 @@ SHADES = ("very_light", "light", "neutral", "dark", "very_dark")
 SIZES = ("tiny", "small", "medium", "large", "giant")
 
 PRESETS = ("dqn", "her", "noisy-her", "higher", "reward")  # the paper's methods (config_presets.py)
-WORLDS = ("paper", "small")
+WORLDS = ("paper", "small")  # our own worlds; a BabyAI pickup level is named by its gymnasium id
+BABYAI_PREFIX = "BabyAI-"
+
+
+def is_babyai_world(name: str) -> bool:
+    """Whether a world name names a Farama Minigrid BabyAI level (checked against minigrid by world/)."""
+    return isinstance(name, str) and name.startswith(BABYAI_PREFIX)
+
+
 PROFILES = ("default", "paper")  # ours (docs/decisions.md) or the paper's (docs/paper_settings.md)
 FUSIONS = ("film", "concat")
 TARGET_UPDATES = ("period", "polyak")
@@ -41,14 +49,14 @@ class ConfigError(ValueError):
 # (`make docs`); why a default is what it is lives in docs/decisions.md.
 @dataclass(frozen=True)
 class WorldConfig:
-    name: str = "paper"  # the world's name (paper: 10x10, 10 objects; small: tests)
+    name: str = "paper"  # the world: paper (10x10, 10 objects), small (tests) or a BabyAI pickup level id
     room_size: int = 10  # interior cells per side; the outer wall is added around it
     n_objects: int = 10  # objects in the room, the goal among them
     colors: tuple[str, ...] = COLORS  # attribute values this world uses (subsets of the global tables)
     types: tuple[str, ...] = TYPES  # object types this world uses
     shades: tuple[str, ...] = SHADES  # shades this world uses
     sizes: tuple[str, ...] = SIZES  # sizes this world uses
-    max_steps: int = 40  # steps before an episode times out
+    max_steps: int = 40  # steps before an episode times out (BabyAI: 0 = the level's own)
     view_size: int = 7  # side of the agent's egocentric view, in cells (odd)
     heldout_count: int = 60  # objects kept out of training goals (paper: 60 of 300)
     split_seed: int = 0  # seed of the train / held-out split of the objects
@@ -255,6 +263,12 @@ def validate_world(w: WorldConfig) -> None:
     is built on its own by tests, benchmarks and the Gymnasium view."""
     if not isinstance(w, WorldConfig):
         raise ConfigError(f"world: expected a WorldConfig, got {type(w).__name__}")
+    if is_babyai_world(w.name):  # the level itself is checked against minigrid when it is built
+        _check(isinstance(w.max_steps, numbers.Integral) and not isinstance(w.max_steps, bool) and w.max_steps >= 0,
+               f"world.max_steps: must be an integer >= 0 (0: the level's own), got {w.max_steps!r}")
+        _check(w.view_size == 7, f"world.view_size: BabyAI levels show a 7x7 view, got {w.view_size!r}")
+        _check(not w.reward_shaping, "world.reward_shaping: not defined on BabyAI levels (the level gives the reward)")
+        return
     for name in ("room_size", "n_objects", "max_steps", "view_size", "heldout_count", "split_seed"):
         value = getattr(w, name)
         _check(isinstance(value, numbers.Integral) and not isinstance(value, bool),

@@ -7,7 +7,7 @@ import argparse
 import json
 from typing import Any
 
-from higher_dist.config import PRESETS, PROFILES, WORLDS, Config, ConfigError, from_dict
+from higher_dist.config import PRESETS, PROFILES, WORLDS, Config, ConfigError, from_dict, is_babyai_world
 from higher_dist.config_presets import make_config
 
 
@@ -55,12 +55,22 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+def world_name(text: str) -> str:
+    """--world: one of our worlds or a BabyAI level id (whether minigrid has that level is checked when
+    the world is built)."""
+    if text in WORLDS or is_babyai_world(text):
+        return text
+    raise argparse.ArgumentTypeError(f"unknown world {text!r}; choose one of {', '.join(WORLDS)} "
+                                     f"or a BabyAI pickup level id such as BabyAI-PickupDist-v0")
+
+
 def add_config_flags(p: argparse.ArgumentParser) -> None:
     # Defaults are None here and filled in by config_from_args, so that `explicit_overrides` can tell a
     # flag the user gave from a default (a resumed run compares only what was given with its config).
     p.add_argument("--preset", choices=PRESETS, default=None, help="the paper's method to run (default: higher)")
-    p.add_argument("--world", choices=WORLDS, default=None,
-                   help="paper: 10x10, 10 objects; small: tests (default: paper)")
+    p.add_argument("--world", type=world_name, default=None, metavar="WORLD",
+                   help="paper: 10x10, 10 objects; small: tests; or a BabyAI pickup level id such as "
+                        "BabyAI-PickupDist-v0 (default: paper)")
     p.add_argument("--profile", choices=PROFILES, default=None,
                    help="default: our tuned settings; paper: the paper's (docs/paper_settings.md) (default: default)")
     p.add_argument("--actors", type=positive_int, default=None,

@@ -10,7 +10,7 @@ from dataclasses import replace
 from typing import Any
 
 from higher_dist.config import (PRESETS, PROFILES, WORLDS, Config, ConfigError, EvalConfig, RelabelConfig,
-                                WorldConfig, from_dict, override)
+                                WorldConfig, from_dict, is_babyai_world, override)
 
 
 def small_world() -> WorldConfig:
@@ -26,7 +26,11 @@ def world_by_name(name: str) -> WorldConfig:
         return WorldConfig()
     if name == "small":
         return small_world()
-    raise ConfigError(f"world: unknown world {name!r}; choose one of {', '.join(WORLDS)}")
+    if is_babyai_world(name):
+        # The level's view and step limit come from minigrid when the world is built (max_steps 0).
+        return WorldConfig(name=name, max_steps=0, heldout_count=0)
+    raise ConfigError(f"world: unknown world {name!r}; choose one of {', '.join(WORLDS)} "
+                      f"or a BabyAI pickup level such as BabyAI-PickupDist-v0")
 
 
 # What each of the paper's methods relabels its failed episodes with.

@@ -18,7 +18,7 @@ from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.exploration import Explorer, epsilon_greedy
 from higher_dist.learning.devices import resolve_device
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
-from higher_dist.world.grid import BatchedFetchAttr
+from higher_dist.world.batched import batched_world
 from higher_dist.world.spec import DEFAULT_SPEC, RUNNING, WorldSpec
 
 QFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -27,10 +27,10 @@ QFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
 class EpisodeCollector:
     def __init__(self, world_cfg: WorldConfig, n_envs: int, frame_stack: int, seed: int,
                  actor_id: int = 0, goal_set: str = "train"):
-        self.world = BatchedFetchAttr(world_cfg, n_envs, seed, goal_set=goal_set)
+        self.world = batched_world(world_cfg, n_envs, seed, goal_set=goal_set)
         self.n_envs, self.frame_stack, self.actor_id = n_envs, frame_stack, actor_id
-        v = world_cfg.view_size
-        t_max = world_cfg.max_steps
+        v = self.world.view_size
+        t_max = self.world.max_steps
         self._frames = np.zeros((n_envs, t_max + 1, v, v, 4), np.uint8)
         self._actions = np.zeros((n_envs, t_max), np.uint8)
         self._rewards = np.zeros((n_envs, t_max), np.float32)
@@ -74,7 +74,7 @@ class EpisodeCollector:
             frames=self._frames[i, : t + 1].copy(), actions=self._actions[i, :t].copy(),
             rewards=self._rewards[i, :t].copy(), mission=res.mission_done[i].astype(np.int64),
             outcome=int(res.outcome[i]), picked=res.picked[i].astype(np.int8),
-            goal=res.goal[i].astype(np.int8), actor_id=self.actor_id,
+            goal=res.goal[i].astype(np.int8), pick_step=int(res.pick_step[i]), actor_id=self.actor_id,
             weights_version=self.weights_version,
         )
 
@@ -148,7 +148,10 @@ def evaluate_goal_sets(q_fn: QFunction, cfg, seed: int, suffix: str = "") -> dic
     (metrics.AVERAGED_SUFFIX for the averaged weights)."""
     k, n = cfg.network.frame_stack, cfg.eval.episodes
     out: dict[str, float] = {}
-    for goal_set, key in (("train", m.SUCCESS_EVAL_TRAIN), ("heldout", m.SUCCESS_EVAL_HELDOUT)):
+    goal_sets = [("train", m.SUCCESS_EVAL_TRAIN)]
+    if WorldSpec.of(cfg.world).has_heldout:  # a BabyAI level is scored on its own missions only
+        goal_sets.append(("heldout", m.SUCCESS_EVAL_HELDOUT))
+    for goal_set, key in goal_sets:
         rate, se = evaluate(q_fn, cfg.world, k, n, goal_set, seed)
         out[key + suffix] = round(rate, 4)
         out[key + suffix + m.SE_SUFFIX] = round(se, 4)

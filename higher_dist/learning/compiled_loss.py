@@ -7,12 +7,20 @@ samples per CPU-second at batch 64-256 (docs/benchmarks.md). So the learner neve
 and the learner keeps stepping eagerly until `ready`. Any failure (no C++ compiler, an unsupported
 op) leaves `failed` set with the reason, and the learner stays eager for good.
 
+Tracing is not thread-safe in one way that matters here: while AOTAutograd traces (make_fx, an FX
+tracer), `torch.nn.Module.__call__` is patched for the whole process, so a module called from another
+thread at that moment is routed into the trace (it raises, or worse, lands in the graph). `TRACING_GATE`
+keeps them apart: the build holds it exclusively, and every other user of modules in the process (the
+learner's updates, the evaluator thread) enters it shared. Updates skip while a build runs rather than
+wait (the learner keeps receiving), so a cold compile costs its own length of learning, once.
+
 The compiled function takes the parameters as inputs (torch.func.functional_call over a module that
 holds both networks), so the graph compiled on the clones runs on the live parameters without a
 recompile, and autograd reaches the live `.grad`s.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 from typing import Callable
@@ -23,6 +31,58 @@ from torch import nn
 from higher_dist.learning.networks import traced_path
 
 log = logging.getLogger("higher.compile")
+
+
+class TracingGate:
+    """Many module users at once, or one compile build alone; a waiting build goes first (new users are
+    refused or wait), so back-to-back updates cannot starve it."""
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._users = 0
+        self._building = False
+        self._build_waiting = 0
+
+    def try_enter(self) -> bool:
+        """Enter as a module user unless a build runs or waits; the caller must `leave` after."""
+        with self._cond:
+            if self._building or self._build_waiting:
+                return False
+            self._users += 1
+            return True
+
+    @contextlib.contextmanager
+    def using(self):
+        """Use modules, waiting for a running or waiting build first (off the learner's hot path)."""
+        with self._cond:
+            self._cond.wait_for(lambda: not (self._building or self._build_waiting))
+            self._users += 1
+        try:
+            yield
+        finally:
+            self.leave()
+
+    def leave(self) -> None:
+        with self._cond:
+            self._users -= 1
+            self._cond.notify_all()
+
+    @contextlib.contextmanager
+    def building(self):
+        with self._cond:
+            self._build_waiting += 1
+            self._cond.wait_for(lambda: self._users == 0 and not self._building)
+            self._build_waiting -= 1
+            self._building = True
+        try:
+            yield
+        finally:
+            with self._cond:
+                self._building = False
+                self._cond.notify_all()
+
+
+TRACING_GATE = TracingGate()  # one per process: the patch it guards against is process-wide
 
 
 class _Loss(nn.Module):
@@ -70,8 +130,8 @@ class CompiledLoss:
                   for name, t in self._live.items()}
         example = {name: t.clone() for name, t in example.items()}
         self._shapes = {name: (t.shape, t.dtype) for name, t in example.items()}
-        if not background:
-            self._build(clones, example)
+        if not background:  # benchmarks and tests: one thread, which may be inside the gate already
+            self._build_alone(clones, example)
             return
         self._thread = threading.Thread(target=self._build, args=(clones, example), name="compile-loss",
                                         daemon=True)
@@ -89,6 +149,10 @@ class CompiledLoss:
         return self.ready
 
     def _build(self, params: dict[str, torch.Tensor], example: dict[str, torch.Tensor]) -> None:
+        with TRACING_GATE.building():
+            self._build_alone(params, example)
+
+    def _build_alone(self, params: dict[str, torch.Tensor], example: dict[str, torch.Tensor]) -> None:
         try:
             import torch._dynamo
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from higher_dist import metrics as m
 from higher_dist.config import Config
+from higher_dist.learning.compiled_loss import TRACING_GATE
 from higher_dist.learning.dqn import DQNLearner, learning_rate_at
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.rate_limiter import SamplesPerInsertLimiter
@@ -98,12 +99,18 @@ class LearnerCore:
             self._prefetcher.shutdown(wait=True)
 
     def train_available(self, max_updates: int) -> int:
-        """Run updates while the ratio allows, at most `max_updates`; returns how many ran."""
-        n = 0
-        while n < max_updates and self.can_update():
-            self.update()
-            n += 1
-        return n
+        """Run updates while the ratio allows, at most `max_updates`; returns how many ran. None run
+        while the loss compiles in the background (compiled_loss.TRACING_GATE): the caller goes on."""
+        if not TRACING_GATE.try_enter():
+            return 0
+        try:
+            n = 0
+            while n < max_updates and self.can_update():
+                self.update()
+                n += 1
+            return n
+        finally:
+            TRACING_GATE.leave()
 
     # -- reporting --------------------------------------------------------------------------------
     @property

@@ -17,6 +17,7 @@ from higher_dist import metrics as m
 from higher_dist.config import Config
 from higher_dist.learning.acting import act
 from higher_dist.learning.agent import AgentBuilder, train_generator
+from higher_dist.learning.compiled_loss import TRACING_GATE
 
 
 class SingleProcessRunner:
@@ -51,24 +52,26 @@ class SingleProcessRunner:
         record: dict = {}
         last_eval: dict = {}
         while frames_done < budget:
-            for i, collector in enumerate(self.collectors):
-                eps = self.agent.epsilons(i, collector.n_envs, self.core.frames)
-                episodes = act(collector, self.policy, eps, self.rngs[i], self.explorers[i])
-                frames_done += collector.n_envs
-                if episodes:
-                    self._handle(episodes)
-            before = self.core.updates
-            self.core.train_available(max_updates=10_000)
-            if self.agent.weights_due(before, self.core.updates):
-                self._sync_policy()
-            # On the cadence, and once at the end: the run's last point is greedy success at its end.
-            if evaluation.due(self.core.frames) or frames_done >= budget:
-                last_eval = self.evaluate()
-            if frames_done >= next_metrics or frames_done >= budget:
-                next_metrics += metrics_every
-                record = self.metrics(frames_done, time.perf_counter() - start)
-                record.update(last_eval)
-                self.log(record)
+            # Every module call of a round waits out a background compile's trace (compiled_loss.py).
+            with TRACING_GATE.using():
+                for i, collector in enumerate(self.collectors):
+                    eps = self.agent.epsilons(i, collector.n_envs, self.core.frames)
+                    episodes = act(collector, self.policy, eps, self.rngs[i], self.explorers[i])
+                    frames_done += collector.n_envs
+                    if episodes:
+                        self._handle(episodes)
+                before = self.core.updates
+                self.core.train_available(max_updates=10_000)
+                if self.agent.weights_due(before, self.core.updates):
+                    self._sync_policy()
+                # On the cadence, and once at the end: the run's last point is greedy success at its end.
+                if evaluation.due(self.core.frames) or frames_done >= budget:
+                    last_eval = self.evaluate()
+                if frames_done >= next_metrics or frames_done >= budget:
+                    next_metrics += metrics_every
+                    record = self.metrics(frames_done, time.perf_counter() - start)
+                    record.update(last_eval)
+                    self.log(record)
         return record
 
     def _handle(self, episodes) -> None:

@@ -8,7 +8,8 @@ import platform
 import sys
 from pathlib import Path
 
-from higher_dist.config import WORLDS, ConfigError
+from higher_dist.config import ConfigError
+from higher_dist.config_flags import world_name
 from higher_dist.config_flags import positive_int
 from higher_dist.paths import ensure_folder
 from higher_dist.reproduce import plan as plan_mod
@@ -36,7 +37,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--parallel", type=positive_int, default=None,
                    help=f"runs at once (default fits this machine: {plan_mod.default_parallel()})")
     p.add_argument("--out", default="runs/reproduce", help="the plan's folder (plan.json, runs/, figures/, results.md)")
-    p.add_argument("--world", choices=WORLDS, default="paper", help="small: a quick world for smoke tests")
+    p.add_argument("--world", type=world_name, default="paper", metavar="WORLD",
+                   help="paper, small (a quick world for smoke tests) or a BabyAI pickup level id")
     p.add_argument("--methods", default=None, metavar="LIST",
                    help="only these variants or presets, comma-separated (e.g. dqn,her)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="a config override for every run")

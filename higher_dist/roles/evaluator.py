@@ -14,6 +14,7 @@ import numpy as np
 
 from higher_dist import metrics as m
 from higher_dist.learning.agent import AgentBuilder
+from higher_dist.learning.compiled_loss import TRACING_GATE
 
 log = logging.getLogger("higher.evaluator")
 
@@ -46,7 +47,8 @@ class BackgroundEvaluator:
 
     def _run(self, weights: dict[str, np.ndarray], averaged: dict[str, np.ndarray] | None, frames: int) -> None:
         try:
-            result = self.agent.evaluate_weights(self.policy, weights, averaged, frames)
+            with TRACING_GATE.using():  # not while the learner's loss compiles (compiled_loss.py)
+                result = self.agent.evaluate_weights(self.policy, weights, averaged, frames)
         except Exception:  # an evaluation bug must not take the learner down with it
             log.exception("evaluation at %d frames failed", frames)
             return

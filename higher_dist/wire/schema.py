@@ -22,7 +22,7 @@ import numpy as np
 
 from higher_dist.world import spec as world_spec
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 
 REASONS = (
     "bad_frames",  # not a list of byte buffers
@@ -79,9 +79,10 @@ MAX_VIEW = 31
 MAX_MISSION_LEN = 64
 MAX_TOKEN = 1023
 
-VIEW_CHANNEL_MAX = tuple(n - 1 for n in world_spec.VIEW_CHANNEL_VALUES)
-ATTR_MAX = tuple(n - 1 for n in world_spec.ATTR_VALUES)  # attribute indices; -1 = none
-N_ACTIONS = world_spec.N_ACTIONS
+# The largest values any world family sends; the run's own WorldSpec is checked by unpack_episodes.
+VIEW_CHANNEL_MAX = tuple(n - 1 for n in world_spec.MAX_CHANNEL_VALUES)
+ATTR_MAX = tuple(n - 1 for n in world_spec.MAX_ATTR_VALUES)  # attribute indices; -1 = none
+N_ACTIONS = world_spec.MAX_ACTIONS
 N_OUTCOMES = world_spec.N_OUTCOMES
 
 Bound = Union[int, float, tuple, None]
@@ -201,6 +202,7 @@ _SPECS: tuple[MessageSpec, ...] = (
         Array("outcome", "uint8", (_N,), 0, N_OUTCOMES - 1),
         Array("picked", "int8", (_N, exact(4)), -1, ATTR_MAX),
         Array("goal", "int8", (_N, exact(4)), -1, ATTR_MAX),
+        Array("pick_step", "int32", (_N,), -1, MAX_STEPS - 1),
         Array("relabelled", "uint8", (_N,), 0, 1),
         Array("actor_id", "int32", (_N,), 0, MAX_ID),
         Array("weights_version", "int64", (_N,), 0, MAX_COUNTER),

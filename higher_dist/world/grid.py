@@ -240,6 +240,14 @@ class BatchedFetchAttr:
         self._set_goals([env_index], goal, np.asarray(mission, dtype=np.int64))
         self._started = True
 
+    @property
+    def view_size(self) -> int:
+        return self.cfg.view_size
+
+    @property
+    def max_steps(self) -> int:
+        return self.cfg.max_steps
+
     def view(self) -> np.ndarray:
         """The current observation of every env, (B, V, V, 4) uint8."""
         return self._views()

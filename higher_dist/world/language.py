@@ -162,6 +162,18 @@ def parse(tokens_or_text) -> np.ndarray | None:
     return attrs
 
 
+def parse_many(tokens) -> tuple[np.ndarray, np.ndarray]:
+    """Parse each row of (N, L) tokens: (attrs (N,4) int64 with -1 where unparsed, ok (N,) bool)."""
+    tokens = np.asarray(tokens)
+    attrs = np.full((tokens.shape[0], 4), -1, np.int64)
+    ok = np.zeros(tokens.shape[0], bool)
+    for i, row in enumerate(tokens):
+        parsed = parse(row)
+        if parsed is not None:
+            attrs[i], ok[i] = parsed, True
+    return attrs, ok
+
+
 def noisy_attrs(attrs, p: float, space, rng: np.random.Generator) -> np.ndarray:
     """The noisy expert's view of `attrs (n, 4)`, as the paper defines it: each attribute, with
     probability p, is swapped to another of the world's values for it (`space.values(attr)`), drawn

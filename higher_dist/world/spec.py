@@ -8,6 +8,13 @@ Two kinds of knowledge live here:
   have the same input sizes on every world and a checkpoint means the same thing everywhere.
 - `WorldSpec`: a small frozen record made from a `WorldConfig` with what a run's world adds (view size,
   episode limit, which attribute values this world uses). Build it with `WorldSpec.of(world_cfg)`.
+
+Two world families share these encodings. `fetchattr` is our own numpy world (world/grid.py). `babyai`
+is a Farama Minigrid BabyAI pickup level (world/babyai.py), named by its gymnasium id: its views are
+minigrid's (object, colour, state) cells plus a fourth channel that is always 0, its actions are the
+level's 7, its missions are the level's own sentences (world/babyai_language.py) and a described object
+is (colour, type, location, plural) into that module's tables. The wire schema caps what any family can
+send (`MAX_*` below); each run's `WorldSpec` holds its own tighter limits.
 """
 from __future__ import annotations
 
@@ -15,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from higher_dist.config import COLORS, SHADES, SIZES, TYPES, WorldConfig
-from higher_dist.world import language
+from higher_dist.config import COLORS, SHADES, SIZES, TYPES, WorldConfig, is_babyai_world
+from higher_dist.world import babyai_language, language
 
 # -- view cells: 4 channels [kind, color, shade, size] -------------------------------------------
 VIEW_CHANNELS = 4
@@ -42,6 +49,18 @@ N_OUTCOMES = len(OUTCOME_NAMES)
 RUNNING = -1  # outcome of an env whose episode goes on
 
 
+# -- the BabyAI family (values minigrid defines; checked against minigrid by tests/unit/test_world_babyai.py)
+BABYAI_CHANNEL_VALUES = (11, 6, 3, 1)  # object 0..10, colour 0..5, door state 0..2, padding channel
+BABYAI_ACTION_NAMES = ("left", "right", "forward", "pickup", "drop", "toggle", "done")
+BABYAI_ATTR_VALUES = (len(babyai_language.COLORS), len(babyai_language.TYPES), len(babyai_language.LOCS), 2)
+BABYAI_FIRST_OBJECT = 5  # minigrid's object index of `key`; key, ball, box follow
+
+# -- what the wire admits from any family (the per-run spec checks the run's own limits) -----------
+MAX_CHANNEL_VALUES = tuple(max(a, b) for a, b in zip(VIEW_CHANNEL_VALUES, BABYAI_CHANNEL_VALUES))
+MAX_ACTIONS = max(N_ACTIONS, len(BABYAI_ACTION_NAMES))
+MAX_ATTR_VALUES = tuple(max(a, b) for a, b in zip(ATTR_VALUES, BABYAI_ATTR_VALUES))
+
+
 @dataclass(frozen=True)
 class WorldSpec:
     """What a run's world looks like to everything that is not the world itself."""
@@ -58,13 +77,54 @@ class WorldSpec:
     # may hold on this world (a small world uses a subset).
     world_values: tuple[tuple[int, ...], ...] = tuple(tuple(range(n)) for n in ATTR_VALUES)
     reward_shaping: bool = False
+    family: str = "fetchattr"  # fetchattr | babyai
+    level: str = ""  # the BabyAI level's gymnasium id (babyai only)
+    has_heldout: bool = True  # whether some goals are kept out of training (BabyAI levels have none)
 
     @classmethod
     def of(cls, world: WorldConfig) -> "WorldSpec":
+        if is_babyai_world(world.name):
+            return cls._of_babyai(world)
         values = tuple(tuple(table.index(v) for v in getattr(world, field))
                        for table, field in zip(ATTR_TABLES, ("colors", "types", "shades", "sizes")))
         return cls(view_size=world.view_size, max_steps=world.max_steps, world_values=values,
                    reward_shaping=world.reward_shaping)
+
+    @classmethod
+    def _of_babyai(cls, world: WorldConfig) -> "WorldSpec":
+        from higher_dist.world.babyai_levels import level_facts  # imports minigrid: only when a level is asked for
+        facts = level_facts(world.name)
+        return cls(view_size=facts.view_size, max_steps=world.max_steps or facts.max_steps,
+                   mission_len=babyai_language.MISSION_LEN, vocab_size=len(babyai_language.VOCAB),
+                   n_actions=len(BABYAI_ACTION_NAMES), channel_values=BABYAI_CHANNEL_VALUES,
+                   attr_values=BABYAI_ATTR_VALUES,
+                   world_values=tuple(tuple(range(n)) for n in BABYAI_ATTR_VALUES),
+                   reward_shaping=False, family="babyai", level=world.name, has_heldout=False)
+
+    @property
+    def language(self):
+        """The module of this world's instruction language (world/language.py or world/babyai_language.py):
+        both offer VOCAB, MISSION_LEN, encode, decode, parse, parse_many, expert_tokens, with_markers."""
+        return babyai_language if self.family == "babyai" else language
+
+    @property
+    def picked_columns(self) -> int:
+        """How many leading columns of a picked object's attributes are always set: FetchAttr's 4;
+        BabyAI's colour and type (its location is never set, its plural column is 0 or 1)."""
+        return 2 if self.family == "babyai" else 4
+
+    @property
+    def first_object_kind(self) -> int:
+        """The view's kind value of the first pickable object (kinds from here up are objects)."""
+        return BABYAI_FIRST_OBJECT if self.family == "babyai" else KIND_KEY
+
+    def pick_reward(self, length) -> np.ndarray:
+        """The reward of a successful pick on step `length` of an episode (array-valued): 1 on FetchAttr,
+        BabyAI's 1 - 0.9 * length / max_steps on its levels. What a relabelled copy's last step gets."""
+        length = np.asarray(length, dtype=np.float64)
+        if self.family == "babyai":
+            return (1.0 - 0.9 * length / self.max_steps).astype(np.float32)
+        return np.ones_like(length, dtype=np.float32)
 
     @property
     def view_shape(self) -> tuple[int, int, int]:
@@ -90,6 +150,11 @@ class WorldSpec:
     def cell_allowed(self) -> np.ndarray:
         """(4, max(channel_values)) bool: entry [c, x] is True when channel c may hold value x on this
         world's views (0 = none is always allowed on the attribute channels)."""
+        if self.family == "babyai":  # any value of minigrid's tables; the padding channel holds 0 only
+            table = np.zeros((VIEW_CHANNELS, max(self.channel_values)), dtype=bool)
+            for c, n in enumerate(self.channel_values):
+                table[c, :n] = True
+            return table
         table = np.zeros((VIEW_CHANNELS, max(self.channel_values)), dtype=bool)
         table[0, : self.channel_values[0]] = True
         for channel, attr in ((1, 0), (2, 2), (3, 3)):  # color, shade, size channels -> attributes

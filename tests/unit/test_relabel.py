@@ -49,7 +49,7 @@ def mixed_batch(seed: int = 0) -> tuple[list[Episode], list[Episode]]:
     """Successes, time-outs and already relabelled copies around 20 wrong picks; returns (all, wrong)."""
     wrong = wrong_picks(20, "train", seed)
     others = [replace(wrong[0], outcome=SUCCESS), replace(wrong[1], outcome=TIMEOUT,
-                                                          picked=np.full(4, -1, np.int8)),
+                                                          picked=np.full(4, -1, np.int8), pick_step=-1),
               wrong[2].relabel(wrong[2].mission)]
     return others[:2] + wrong + others[2:], wrong
 

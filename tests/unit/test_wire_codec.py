@@ -14,7 +14,7 @@ from higher_dist.learning.samples import real_episodes
 from higher_dist.wire import (MESSAGE_TYPES, PROTOCOL_VERSION, SPECS, WireError, decode, decode_weights, encode,
                               encode_weights, pack_episodes, unpack_episodes)
 from higher_dist.wire.codec import MAGIC
-from higher_dist.world.spec import WorldSpec
+from higher_dist.world.spec import MAX_ACTIONS, MAX_ATTR_VALUES, MAX_CHANNEL_VALUES, WorldSpec
 
 SPEC = WorldSpec.of(WorldConfig())
 MAX_STEPS = SPEC.max_steps
@@ -211,19 +211,19 @@ def test_rejects_nan_and_out_of_range_values():
     rewards[3] = 2.0
     assert _reason(_episodes_frames(rewards=rewards)) == "range"
     actions = arrays["actions"].copy()
-    actions[-1] = 4
+    actions[-1] = MAX_ACTIONS  # no world has that action (FetchAttr's 4 and BabyAI's 7 are checked per run)
     assert _reason(_episodes_frames(actions=actions)) == "range"
     frames = arrays["frames"].copy()
     frames[0, 0, 0, 1] = 7  # color channel: 0 none, 1..6
     assert _reason(_episodes_frames(frames=frames)) == "range"
     frames = arrays["frames"].copy()
-    frames[1, 2, 3, 0] = 5  # kind channel: 0..4
+    frames[1, 2, 3, 0] = MAX_CHANNEL_VALUES[0]  # kind channel: FetchAttr 0..4, BabyAI 0..10
     assert _reason(_episodes_frames(frames=frames)) == "range"
     outcome = arrays["outcome"].copy()
     outcome[0] = 3
     assert _reason(_episodes_frames(outcome=outcome)) == "range"
     picked = arrays["picked"].copy()
-    picked[0, 1] = 2  # type index: key 0, ball 1
+    picked[0, 1] = MAX_ATTR_VALUES[1]  # type index: FetchAttr key, ball; BabyAI key, ball, box
     assert _reason(_episodes_frames(picked=picked)) == "range"
     mission = arrays["mission"].copy()
     mission[0, 0] = 5000

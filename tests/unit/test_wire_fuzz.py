@@ -16,7 +16,7 @@ from dataclasses import replace
 from higher_dist.config import WorldConfig
 from higher_dist.learning.episode import Episode
 from higher_dist.learning.samples import real_episodes
-from higher_dist.world.spec import WorldSpec
+from higher_dist.world.spec import MAX_ACTIONS, MAX_CHANNEL_VALUES, WorldSpec
 from higher_dist.wire import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, WireError, decode, encode, encode_weights,
                               pack_episodes, unpack_episodes)
 from higher_dist.wire.schema import MAX_TOKEN, SPECS
@@ -210,6 +210,10 @@ def test_injected_bad_values_are_rejected(array_name, data):
         expected = "nan" if array_name == "rewards" and not np.isfinite(flat[position]) else "range"
         if array_name == "mission" and flat[position] <= MAX_TOKEN:
             expected = "mission_token"  # under the schema's cap: the run's vocabulary refuses it
+        if array_name == "actions" and flat[position] < MAX_ACTIONS:
+            expected = "action"  # another world's action (BabyAI has 7): the run's spec refuses it
+        if array_name == "frames" and flat[position] < MAX_CHANNEL_VALUES[position % 4]:
+            expected = "cell"  # another world's cell (BabyAI's objects): the run's spec refuses it
         assert exc.reason == expected
     else:
         raise AssertionError(f"an out-of-range {array_name} value was accepted")

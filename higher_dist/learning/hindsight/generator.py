@@ -22,7 +22,7 @@ from torch import nn
 from higher_dist.config import GeneratorConfig
 from higher_dist.learning.episode import Episode
 from higher_dist.learning.devices import resolve_device
-from higher_dist.learning.hindsight.generator_data import GeneratorDataset, parse_many, semantic_accuracy
+from higher_dist.learning.hindsight.generator_data import GeneratorDataset, semantic_accuracy
 from higher_dist.learning.networks import ViewEncoder
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 from higher_dist.world.language import BEG, END, PAD
@@ -157,7 +157,7 @@ class GeneratorTrainer:
     """Model + Adam + dataset, with the gate that says when the generator may relabel."""
 
     def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int = 0, device: str = "cpu"):
-        self.cfg, self.device = cfg, resolve_device(device)
+        self.cfg, self.device, self.language = cfg, resolve_device(device), spec.language
         # A private RNG stream for the initial weights: building a trainer leaves the global torch
         # RNG untouched, and two trainers with one seed start identical.
         with torch.random.fork_rng(devices=[]):
@@ -215,8 +215,8 @@ class GeneratorTrainer:
 
     def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray) -> dict[str, float]:
         """Semantic accuracy of the greedy outputs on given pairs (targets parsed from `tokens`)."""
-        true_attrs, _ = parse_many(tokens)
-        return semantic_accuracy(self.generate(views), true_attrs)
+        true_attrs, _ = self.language.parse_many(tokens)
+        return semantic_accuracy(self.generate(views), true_attrs, self.language)
 
     def evaluate(self) -> dict[str, float]:
         """Accuracy on the validation split; its exact match becomes `val_accuracy` (the gate's input)."""

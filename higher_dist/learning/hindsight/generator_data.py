@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from higher_dist.learning.episode import SUCCESS, Episode
-from higher_dist.world.language import parse
+from higher_dist.world import language as fetchattr_language
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
 _ATTR_NAMES = ("color", "type", "shade", "size")
@@ -143,29 +143,18 @@ class GeneratorDataset:
         self.views[slots], self.tokens[slots], self.is_val[slots] = views, tokens, is_val
 
 
-def parse_many(tokens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Parse each row of (N, L) tokens: (attrs (N,4) int64 with -1 where unparsed, ok (N,) bool)."""
-    tokens = np.asarray(tokens)
-    attrs = np.full((tokens.shape[0], 4), -1, np.int64)
-    ok = np.zeros(tokens.shape[0], bool)
-    for i, row in enumerate(tokens):
-        parsed = parse(row)
-        if parsed is not None:
-            attrs[i], ok[i] = parsed, True
-    return attrs, ok
-
-
-def semantic_accuracy(pred_tokens: np.ndarray, true_attrs: np.ndarray) -> dict[str, float]:
+def semantic_accuracy(pred_tokens: np.ndarray, true_attrs: np.ndarray, language=fetchattr_language) -> dict[str, float]:
     """How often the generated instructions describe the right object, whatever their word order.
 
-    exact: all four attributes right; color/type/shade/size: that attribute right; an output that
-    does not parse counts as wrong on every attribute. parse_rate: fraction of outputs that parse.
+    exact: all four attribute columns right; color/type/shade/size: that column right (on a BabyAI level
+    the last two columns are location and article); an output that does not parse counts as wrong on
+    every column. parse_rate: fraction of outputs that parse. `language`: the world's (WorldSpec.language).
     """
     true_attrs = np.asarray(true_attrs, dtype=np.int64).reshape(-1, 4)
     n = true_attrs.shape[0]
     if n == 0:
         return {"exact": 0.0, **{a: 0.0 for a in _ATTR_NAMES}, "parse_rate": 0.0, "n": 0}
-    pred_attrs, ok = parse_many(pred_tokens)
+    pred_attrs, ok = language.parse_many(pred_tokens)
     match = (pred_attrs == true_attrs) & ok[:, None]
     out: dict[str, float] = {"exact": float(match.all(axis=1).mean())}
     for j, name in enumerate(_ATTR_NAMES):

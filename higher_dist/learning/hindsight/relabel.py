@@ -7,8 +7,11 @@ The paper's methods differ only here (see the table of methods in README.md):
 - `learned` (DQN+HIGhER): the instruction generator describes the view before the pick; it is trained
   on successful episodes only, and used only once its gate is open.
 
-Every strategy relabels copies of wrong-pick episodes only: successes already carry their reward,
-time-outs picked nothing (nothing to describe), and relabelled copies are never relabelled again.
+Every strategy relabels copies of failed episodes that picked something: successes already carry their
+reward, episodes that picked nothing have nothing to describe, and relabelled copies are never relabelled
+again. On FetchAttr a failed pick ends the episode (a wrong pick); on a BabyAI level the agent may pick,
+carry, drop and pick again until the time-out: the copy describes its first pick and ends there, with the
+reward the level gives a success on that step. The missions are the world's own language (WorldSpec.language).
 Each relabel is scored against the picked object for the dashboard; that score is computed after the
 relabels are made and is never fed back into training. `relabel_accuracy` is over the last
 `RECENT_RELABELS` relabels (a window, so it follows the generator as it improves);
@@ -22,10 +25,9 @@ from typing import Any
 import numpy as np
 
 from higher_dist.config import RELABEL_STRATEGIES, Config, GeneratorConfig
-from higher_dist.learning.episode import WRONG_PICK, Episode
+from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.hindsight.generator import GeneratorTrainer
-from higher_dist.learning.hindsight.generator_data import parse_many
-from higher_dist.world.language import expert_tokens, noisy_attrs
+from higher_dist.world.language import noisy_attrs
 from higher_dist.world.objects import ObjectSpace
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
@@ -33,8 +35,8 @@ RECENT_RELABELS = 1000  # window of the reported relabel accuracy
 
 
 def relabel_candidates(episodes: list[Episode]) -> list[Episode]:
-    """The episodes a strategy may relabel: original wrong picks."""
-    return [ep for ep in episodes if ep.outcome == WRONG_PICK and not ep.relabelled]
+    """The episodes a strategy may relabel: original failures that picked an object."""
+    return [ep for ep in episodes if ep.outcome != SUCCESS and ep.pick_step >= 0 and not ep.relabelled]
 
 
 class RelabelStrategy:
@@ -42,8 +44,9 @@ class RelabelStrategy:
 
     name = "none"
 
-    def __init__(self, seed: int = 0):
+    def __init__(self, seed: int = 0, spec: WorldSpec = DEFAULT_SPEC):
         self.rng = np.random.default_rng(seed)
+        self.spec, self.language = spec, spec.language
         self.considered = 0  # wrong-pick episodes offered for relabelling
         self.relabelled = 0  # copies returned
         self.correct = 0  # copies whose instruction describes the picked object (metrics only)
@@ -58,6 +61,10 @@ class RelabelStrategy:
         self.considered += len(relabel_candidates(episodes))
         return []
 
+    def _copies(self, originals: list[Episode], missions) -> list[Episode]:
+        """The relabelled copies: each ends at its pick, rewarded as the world rewards a success there."""
+        return [ep.relabel(t, float(self.spec.pick_reward(ep.pick_step + 1))) for ep, t in zip(originals, missions)]
+
     def train(self, budget_steps: int | None = None) -> dict[str, float]:
         """Spend up to `budget_steps` gradient steps on the generator (only the learned strategy does)."""
         return {}
@@ -68,7 +75,7 @@ class RelabelStrategy:
         counted as `contradicting`. Compared with the mission the agent followed, not with ground truth."""
         if not candidates:
             return np.zeros(0, np.int64)
-        goals, _ = parse_many(np.stack([ep.mission for ep in candidates]))
+        goals, _ = self.language.parse_many(np.stack([ep.mission for ep in candidates]))
         keep = ~(np.asarray(attrs, np.int64) == goals).all(axis=1)
         self.contradicting += int((~keep).sum())
         return np.flatnonzero(keep)
@@ -124,16 +131,17 @@ class ExpertRelabel(RelabelStrategy):
         candidates = relabel_candidates(episodes)
         self.considered += len(candidates)
         # An original wrong pick always has a picked object; the check guards malformed input.
-        candidates = [ep for ep in candidates if np.all(np.asarray(ep.picked) >= 0)]
+        named = self.spec.picked_columns
+        candidates = [ep for ep in candidates if np.all(np.asarray(ep.picked)[:named] >= 0)]
         if not candidates:
             return []
         picked = np.stack([np.asarray(ep.picked, np.int64) for ep in candidates])
         attrs = self._attrs_for(picked)
         keep = self._not_contradicting(candidates, attrs)
         candidates, attrs = [candidates[i] for i in keep], attrs[keep]
-        tokens = expert_tokens(attrs, self.rng)
+        tokens = self.language.expert_tokens(attrs, self.rng)
         self._score(candidates, attrs)
-        return [ep.relabel(t) for ep, t in zip(candidates, tokens)]
+        return self._copies(candidates, tokens)
 
 
 class NoisyExpertRelabel(ExpertRelabel):
@@ -142,8 +150,8 @@ class NoisyExpertRelabel(ExpertRelabel):
 
     name = "noisy"
 
-    def __init__(self, space: ObjectSpace, p: float, seed: int = 0):
-        super().__init__(seed)
+    def __init__(self, space: ObjectSpace, p: float, seed: int = 0, spec: WorldSpec = DEFAULT_SPEC):
+        super().__init__(seed, spec)
         self.space, self.p = space, float(p)
 
     def _attrs_for(self, picked: np.ndarray) -> np.ndarray:
@@ -162,7 +170,7 @@ class LearnedRelabel(RelabelStrategy):
     name = "learned"
 
     def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int = 0, device: str = "cpu"):
-        super().__init__(seed)
+        super().__init__(seed, spec)
         self.cfg = cfg
         self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
@@ -180,13 +188,13 @@ class LearnedRelabel(RelabelStrategy):
         if not self.trainer.gate_open:
             self.gated_off += len(candidates)
             return []
-        views = np.stack([ep.frames[ep.length - 1] for ep in candidates])
+        views = np.stack([ep.frames[ep.pick_step] for ep in candidates])
         tokens = self.trainer.generate(views)
-        attrs, ok = parse_many(tokens)
+        attrs, ok = self.language.parse_many(tokens)
         self.unparseable += int((~ok).sum())
         kept = np.flatnonzero(ok)
         kept = kept[self._not_contradicting([candidates[i] for i in kept], attrs[kept])]
-        copies = [candidates[i].relabel(tokens[i]) for i in kept]
+        copies = self._copies([candidates[i] for i in kept], tokens[kept])
         self._score([candidates[i] for i in kept], attrs[kept])
         return copies
 
@@ -238,12 +246,16 @@ class LearnedRelabel(RelabelStrategy):
 def make_relabeler(cfg: Config, seed: int, space: ObjectSpace | None = None) -> RelabelStrategy:
     """The relabel strategy of a run config (cfg.relabel, cfg.generator, cfg.world)."""
     kind = cfg.relabel.strategy
+    spec = WorldSpec.of(cfg.world)
     if kind == "none":
-        return RelabelStrategy(seed)
+        return RelabelStrategy(seed, spec)
     if kind == "expert":
-        return ExpertRelabel(seed)
+        return ExpertRelabel(seed, spec)
     if kind == "noisy":
-        return NoisyExpertRelabel(space if space is not None else ObjectSpace(cfg.world), cfg.relabel.noise_p, seed)
+        if spec.family != "fetchattr":
+            raise ValueError(f"relabel.strategy: noisy is defined on FetchAttr's attributes, not on {spec.level}")
+        return NoisyExpertRelabel(space if space is not None else ObjectSpace(cfg.world), cfg.relabel.noise_p, seed,
+                                  spec)
     if kind == "learned":
-        return LearnedRelabel(cfg.generator, WorldSpec.of(cfg.world), seed, device=cfg.device)
+        return LearnedRelabel(cfg.generator, spec, seed, device=cfg.device)
     raise ValueError(f"relabel.strategy: unknown strategy {kind!r}; choose one of {', '.join(RELABEL_STRATEGIES)}")
