@@ -208,12 +208,15 @@ class LearnerRole:
         return 0
 
     def shutdown(self) -> None:
-        self.control.stop_all(self.stop_reason or "learner exiting")
-        try:
-            self.telemetry.send(codec.encode("stop", {"reason": self.stop_reason or "learner exiting"},
-                                             sender="learner")[0], flags=zmq.NOBLOCK)
-        except zmq.ZMQError:
-            pass
+        # A crash (no stop reason) tells nobody to stop: like a killed learner, the restarted one finds the
+        # actors and the relabeler still there, reconnecting. Told to stop, they would exit for good.
+        if self.stop_reason:
+            self.control.stop_all(self.stop_reason)
+            try:
+                self.telemetry.send(codec.encode("stop", {"reason": self.stop_reason}, sender="learner")[0],
+                                    flags=zmq.NOBLOCK)
+            except zmq.ZMQError:
+                pass
         self.evaluator.wait()
         if self.core.frames >= self.cfg.frames:  # the run's last point: greedy success at its end
             self.start_evaluation()
@@ -222,7 +225,7 @@ class LearnerRole:
         self.rd.append_metrics(record)
         self.checkpoint()
         self._close()
-        log.info("learner stopped: %s", self.stop_reason)
+        log.info("learner stopped: %s", self.stop_reason or "crashed (the others keep running)")
 
     def _close(self) -> None:
         self.control.close()

@@ -194,3 +194,13 @@ def with_markers(missions) -> np.ndarray:
     lengths = (missions != PAD).sum(axis=1)
     out[np.arange(len(missions)), lengths + 1] = END
     return out
+
+
+def satisfies(described, objects) -> np.ndarray:
+    """Whether each object `objects (n, 4)` (colour, type, ...) fits the description `described (n, 4)`,
+    as the level's verifier judges a pickup: an unnamed colour or type (-1) admits any. The location
+    and the article are not properties of the object (they depend on where the agent started and on
+    the other objects), so they are not judged."""
+    d, o = np.asarray(described, np.int64), np.asarray(objects, np.int64)
+    return (((d[..., 0] == -1) | (d[..., 0] == o[..., 0])) & ((d[..., 1] == -1) | (d[..., 1] == o[..., 1]))
+            & (o[..., 0] >= 0) & (o[..., 1] >= 0))

@@ -174,6 +174,12 @@ def parse_many(tokens) -> tuple[np.ndarray, np.ndarray]:
     return attrs, ok
 
 
+def satisfies(described, objects) -> np.ndarray:
+    """Whether each object `objects (n, 4)` fits the description `described (n, 4)`: a FetchAttr
+    instruction names all four attributes, so only the object itself does."""
+    return (np.asarray(described, np.int64) == np.asarray(objects, np.int64)).all(axis=-1)
+
+
 def noisy_attrs(attrs, p: float, space, rng: np.random.Generator) -> np.ndarray:
     """The noisy expert's view of `attrs (n, 4)`, as the paper defines it: each attribute, with
     probability p, is swapped to another of the world's values for it (`space.values(attr)`), drawn

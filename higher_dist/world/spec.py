@@ -118,6 +118,20 @@ class WorldSpec:
         """The view's kind value of the first pickable object (kinds from here up are objects)."""
         return BABYAI_FIRST_OBJECT if self.family == "babyai" else KIND_KEY
 
+    def front_object(self, views) -> np.ndarray:
+        """The object in the cell in front of the agent in each view `(n, V, V, 4)`, as (n, 4) int64
+        attributes of this world's language (-1 where that cell holds no object): what a pick from there
+        would take. BabyAI describes it by colour and type only (-1, -1 for location and article)."""
+        cell = np.asarray(views)[:, self.view_size - 2, self.view_size // 2].astype(np.int64)
+        is_object = cell[:, 0] >= self.first_object_kind
+        if self.family == "babyai":  # minigrid's kinds after box (goal, lava, agent) are not pickable
+            is_object &= cell[:, 0] < BABYAI_FIRST_OBJECT + len(babyai_language.TYPES)
+            attrs = np.stack([cell[:, 1], cell[:, 0] - BABYAI_FIRST_OBJECT,
+                              np.full(len(cell), -1), np.full(len(cell), -1)], axis=1)
+        else:
+            attrs = np.stack([cell[:, 1] - 1, cell[:, 0] - KIND_KEY, cell[:, 2] - 1, cell[:, 3] - 1], axis=1)
+        return np.where(is_object[:, None], attrs, -1)
+
     def pick_reward(self, length) -> np.ndarray:
         """The reward of a successful pick on step `length` of an episode (array-valued): 1 on FetchAttr,
         BabyAI's 1 - 0.9 * length / max_steps on its levels. What a relabelled copy's last step gets."""

@@ -157,7 +157,7 @@ class GeneratorTrainer:
     """Model + Adam + dataset, with the gate that says when the generator may relabel."""
 
     def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int = 0, device: str = "cpu"):
-        self.cfg, self.device, self.language = cfg, resolve_device(device), spec.language
+        self.cfg, self.device, self.spec, self.language = cfg, resolve_device(device), spec, spec.language
         # A private RNG stream for the initial weights: building a trainer leaves the global torch
         # RNG untouched, and two trainers with one seed start identical.
         with torch.random.fork_rng(devices=[]):
@@ -214,8 +214,13 @@ class GeneratorTrainer:
         return np.concatenate(chunks).astype(np.int64)
 
     def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray) -> dict[str, float]:
-        """Semantic accuracy of the greedy outputs on given pairs (targets parsed from `tokens`)."""
-        true_attrs, _ = self.language.parse_many(tokens)
+        """Semantic accuracy of the greedy outputs on given pairs: do they describe the object the pair's
+        mission was fulfilled by? On FetchAttr the mission names it whole; a BabyAI mission may name only
+        its colour or type, so there the truth is the object in front in the view (the one picked)."""
+        if self.spec.family == "babyai":
+            true_attrs = self.spec.front_object(views)
+        else:
+            true_attrs, _ = self.language.parse_many(tokens)
         return semantic_accuracy(self.generate(views), true_attrs, self.language)
 
     def evaluate(self) -> dict[str, float]:

@@ -86,7 +86,7 @@ class RelabelStrategy:
         if not originals:
             return
         picked = np.stack([np.asarray(ep.picked, np.int64) for ep in originals])
-        right = (picked == np.asarray(new_attrs, np.int64)).all(axis=1)
+        right = self.language.satisfies(np.asarray(new_attrs, np.int64), picked)
         self.correct += int(right.sum())
         self.recent_correct.extend(right.tolist())
         self.relabelled += len(originals)
