@@ -66,6 +66,8 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
         )
     else:
         cfg = PAPER_WORLD_TUNING.get(preset, lambda c: c)(cfg)
+    if is_babyai_world(world):
+        cfg = _on_a_babyai_level(cfg)
     if profile == "paper":
         cfg = paper_profile(cfg)
     cfg = override(cfg, **overrides)
@@ -77,6 +79,14 @@ def _higher_on_the_paper_world(cfg: Config) -> Config:
     # Enough successes early for the generator's gate to open (docs/decisions.md, "HIGhER's gate").
     return replace(cfg, generator=replace(cfg.generator, n_min=100),
                    exploration=replace(cfg.exploration, warmup_frames=200_000))
+
+
+def _on_a_babyai_level(cfg: Config) -> Config:
+    # A pickup level's missions are short and its random successes frequent (PickupDist: ~4 pairs per
+    # 1000 frames): the generator may start from smaller batches and a smaller dataset, checked more
+    # often (docs/decisions.md, "BabyAI levels"). A 1M-frame budget fits a CPU machine.
+    return replace(cfg, frames=1_000_000,
+                   generator=replace(cfg.generator, n_min=50, batch_size=32, eval_every_updates=50))
 
 
 # Per-preset settings measured on the paper world, applied on top of the dataclass defaults.
