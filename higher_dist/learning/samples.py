@@ -1,8 +1,9 @@
 """Real episodes for tests, benchmarks and fuzzing: a random policy on the real world.
 
 Anything that checks episodes against the world (the wire's `unpack_episodes`) needs inputs the world
-could have produced; hand-made random arrays are not that. These come from `BatchedFetchAttr` itself,
-with every outcome represented, and optionally the expert's relabelled copies of the wrong picks.
+could have produced; hand-made random arrays are not that. These come from the world itself (FetchAttr
+or a BabyAI level), with every outcome represented, and optionally the expert's relabelled copies of the
+failures that picked something.
 """
 from __future__ import annotations
 
@@ -11,33 +12,41 @@ import numpy as np
 from higher_dist.config import WorldConfig
 from higher_dist.learning.acting import EpisodeCollector
 from higher_dist.learning.episode import Episode
-from higher_dist.world.language import expert_tokens
-from higher_dist.world.spec import N_ACTIONS, SUCCESS, TIMEOUT, WRONG_PICK
+from higher_dist.world.spec import SUCCESS, WorldSpec
+
+_KINDS = ("success", "picked", "nothing")  # a success, a failure that picked something, one that did not
+
+
+def _kind(ep: Episode) -> str:
+    return "success" if ep.outcome == SUCCESS else "picked" if ep.pick_step >= 0 else "nothing"
 
 
 def real_episodes(world: WorldConfig, n: int, seed: int = 0, relabelled: bool = False,
                   n_envs: int = 32, frame_stack: int = 1) -> list[Episode]:
-    """`n` episodes of a uniformly random policy, interleaving outcomes so that any prefix of three or
-    more holds a success, a wrong pick and a time-out where the world makes them all (the random policy
-    succeeds a few % of the time on the paper world). relabelled: every wrong pick is followed by the
+    """`n` episodes of a uniformly random policy, interleaving kinds so that any prefix of three or more
+    holds a success, a failure that picked something (FetchAttr: a wrong pick; BabyAI: a time-out after
+    a pickup) and one that picked nothing, where the world makes them all (the random policy succeeds a
+    few % of the time on the paper world). relabelled: every failure that picked is followed by the
     expert's relabelled copy (counted in `n`)."""
+    spec = WorldSpec.of(world)
     collector = EpisodeCollector(world, n_envs, frame_stack, seed)
     rng = np.random.default_rng(seed)
-    by_outcome: dict[int, list[Episode]] = {SUCCESS: [], WRONG_PICK: [], TIMEOUT: []}
-    for _ in range(200 * world.max_steps):
-        if sum(len(v) for v in by_outcome.values()) >= 3 * n and all(by_outcome.values()):
+    by_kind: dict[str, list[Episode]] = {k: [] for k in _KINDS}
+    for _ in range(200 * spec.max_steps):
+        if sum(len(v) for v in by_kind.values()) >= 3 * n and all(by_kind.values()):
             break
-        for ep in collector.step(rng.integers(N_ACTIONS, size=n_envs)):
-            by_outcome[ep.outcome].append(ep)
+        for ep in collector.step(rng.integers(spec.n_actions, size=n_envs)):
+            by_kind[_kind(ep)].append(ep)
     out: list[Episode] = []
     turn = 0
-    while len(out) < n and any(by_outcome.values()):
-        pool = by_outcome[(SUCCESS, WRONG_PICK, TIMEOUT)[turn % 3]]
+    while len(out) < n and any(by_kind.values()):
+        pool = by_kind[_KINDS[turn % 3]]
         turn += 1
         if not pool:
             continue
         ep = pool.pop()
         out.append(ep)
-        if relabelled and ep.outcome == WRONG_PICK and len(out) < n:
-            out.append(ep.relabel(expert_tokens(ep.picked[None], rng)[0]))
+        if relabelled and _kind(ep) == "picked" and len(out) < n:
+            mission = spec.language.expert_tokens(ep.picked[None], rng)[0]
+            out.append(ep.relabel(mission, float(spec.pick_reward(ep.pick_step + 1))))
     return out

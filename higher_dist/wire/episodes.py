@@ -177,7 +177,7 @@ def _episode_faults(a: dict, spec: WorldSpec, allow_relabelled: bool, n_actors: 
     timed_out = lengths == spec.max_steps
     if babyai:  # a wrong pick goes on: originals end in a success (a pick) or the time-out
         outcome_ok = np.where(outcome == TIMEOUT, timed_out, (outcome == SUCCESS) & (last_action == ACTION_PICK))
-        outcome_ok = np.where(relabelled, (outcome == WRONG_PICK) & (pick_step == lengths - 1), outcome_ok)
+        outcome_ok |= relabelled  # a copy's own rule (it ends at its pick) is relabel_inconsistent's below
     else:  # a pick ends the episode: it is the last step, a success exactly when it matches the goal
         match = (picked == goal).all(axis=1)
         outcome_ok = np.where(outcome == TIMEOUT, timed_out & (pick_step == -1),
