@@ -7,6 +7,9 @@ the step, the outcome, and for a wrong pick the instruction the run's relabeller
 generator from relabeler.ckpt for HIGhER, whatever its gate says; the expert or noisy expert for HER).
 `--out FILE.png` draws a strip instead: a row per episode, a few frames each.
 
+On a BabyAI level each frame is minigrid's own picture of the room instead (render_babyai.py), with
+the same text panel; a level has only its own missions, so `--goal-set` is `train` there.
+
 The last frame of an episode shows the room before its final action (a pick moves nothing; the world
 resets the room as soon as an episode ends).
 """
@@ -23,10 +26,10 @@ import numpy as np
 
 from higher_dist.config import COLORS, SHADES, SIZES, TYPES, ConfigError, from_dict
 from higher_dist.config_flags import DefaultsHelp
+from higher_dist import render_babyai
 from higher_dist.learning.episode import Episode
-from higher_dist.world.spec import SUCCESS, TIMEOUT, WRONG_PICK
+from higher_dist.world.spec import DEFAULT_SPEC, SUCCESS, TIMEOUT, WorldSpec
 from higher_dist.world.grid import DIRECTION_VECTORS, KIND_BALL, KIND_KEY, KIND_WALL, cell_attrs
-from higher_dist.world.language import decode, describe, parse
 
 BASE_RGB = {"red": (220, 40, 40), "green": (40, 170, 60), "blue": (50, 90, 230), "purple": (140, 60, 190),
             "yellow": (235, 200, 30), "grey": (130, 130, 130)}
@@ -49,7 +52,7 @@ class Snapshot:
 @dataclass
 class Watched:
     mission: str
-    frames: list[Snapshot]
+    frames: list  # Snapshot (FetchAttr) or render_babyai.Picture (BabyAI), one before every action
     episode: Episode | None = None
     relabel: str = ""
     goal_set: str = "train"
@@ -151,23 +154,29 @@ def load_relabeller(cfg, run_dir: Path):
     return strategy, f"gate {gate}, {len(strategy.trainer.dataset)} pairs"
 
 
-def relabel_text(strategy, note: str, ep: Episode, rng: np.random.Generator) -> str:
-    if ep.outcome != WRONG_PICK:
+def relabel_text(strategy, note: str, ep: Episode, rng: np.random.Generator, spec: WorldSpec = DEFAULT_SPEC) -> str:
+    """The instruction the run's relabeller gives a failed episode that picked something (FetchAttr: a
+    wrong pick; BabyAI: a time-out after a pickup), "" for any other episode. The generator describes
+    the frame before the pick, as the relabeler does."""
+    if ep.outcome == SUCCESS or ep.pick_step < 0:
         return ""
     if strategy.name == "none":
         return "relabel: none (this method does not relabel)"
+    words = spec.language
     if strategy.name == "learned":
-        tokens = strategy.trainer.generate(ep.frames[ep.length - 1][None])[0]
-        text = decode(tokens)
-        return f"generator: \"{text}\"" + ("" if parse(tokens) is not None else " (unparseable: dropped)") + f" [{note}]"
+        tokens = strategy.trainer.generate(ep.frames[ep.pick_step][None])[0]
+        text = words.decode(tokens)
+        return (f"generator: \"{text}\"" + ("" if words.parse(tokens) is not None else " (unparseable: dropped)")
+                + f" [{note}]")
     if strategy.name == "expert":
-        return f"expert: \"{describe(ep.picked, rng)}\""
+        return f"expert: \"{words.decode(words.expert_tokens(np.asarray(ep.picked)[None], rng)[0])}\""
     copies = strategy.relabel([ep])
-    return f"noisy expert: \"{decode(copies[0].mission)}\"" if copies else ""
+    return f"noisy expert: \"{words.decode(copies[0].mission)}\"" if copies else ""
 
 
-def watch(cfg, policy, episodes: int, goal_set: str, seed: int) -> list[Watched]:
-    """One greedy episode per environment of a batch of `episodes`, with the full state at every step."""
+def watch(cfg, policy, episodes: int, goal_set: str, seed: int, tile: int = 24) -> list[Watched]:
+    """One greedy episode per environment of a batch of `episodes`, with the full state at every step
+    (on a BabyAI level: minigrid's picture, `tile` pixels per cell)."""
     from higher_dist.learning.acting import EpisodeCollector
 
     if episodes < 1:
@@ -175,13 +184,19 @@ def watch(cfg, policy, episodes: int, goal_set: str, seed: int) -> list[Watched]
 
     collector = EpisodeCollector(cfg.world, episodes, cfg.network.frame_stack, seed, goal_set=goal_set)
     world = collector.world
-    out = [Watched(decode(collector.mission[i]), [], goal_set=goal_set) for i in range(episodes)]
+    spec = WorldSpec.of(cfg.world)
+    out = [Watched(spec.language.decode(collector.mission[i]), [], goal_set=goal_set) for i in range(episodes)]
     running = np.ones(episodes, bool)
     step = 0
     while running.any():
-        pos, dirs = world.agent_pos, world.agent_dir
-        for i in np.flatnonzero(running):
-            out[i].frames.append(Snapshot(world.room_cells(i).copy(), tuple(int(v) for v in pos[i]), int(dirs[i]), step))
+        if spec.family == "babyai":
+            for i in np.flatnonzero(running):
+                out[i].frames.append(render_babyai.picture(world, i, step, tile))
+        else:
+            pos, dirs = world.agent_pos, world.agent_dir
+            for i in np.flatnonzero(running):
+                out[i].frames.append(Snapshot(world.room_cells(i).copy(), tuple(int(v) for v in pos[i]),
+                                              int(dirs[i]), step))
         obs, mission = collector.observation()
         actions = policy(obs, mission).argmax(axis=1)
         finished = collector.step(actions)
@@ -195,7 +210,9 @@ def watch(cfg, policy, episodes: int, goal_set: str, seed: int) -> list[Watched]
     return out
 
 
-def outcome_text(ep: Episode) -> str:
+def outcome_text(ep: Episode, spec: WorldSpec = DEFAULT_SPEC) -> str:
+    if spec.family == "babyai":
+        return render_babyai.outcome_text(ep)
     if ep.outcome == SUCCESS:
         return f"SUCCESS after {ep.length} steps"
     if ep.outcome == TIMEOUT:
@@ -204,18 +221,25 @@ def outcome_text(ep: Episode) -> str:
     return f"WRONG PICK: a {SIZES[size]} {SHADES[shade]} {COLORS[color]} {TYPES[kind]}"
 
 
-def frames_of(watched: list[Watched], view_size: int, cell: int, label: str, first: int = 0, total: int = 0):
+def frames_of(watched: list[Watched], spec: WorldSpec, cell: int, label: str, first: int = 0, total: int = 0):
     """[(image, duration_ms)] of every episode in turn (numbered from `first` of `total`)."""
     out = []
     for k, w in enumerate(watched, start=first):
         for j, shot in enumerate(w.frames):
             last = j == len(w.frames) - 1
-            goals = "held-out goal" if w.goal_set == "heldout" else "training goal"
-            lines = [f"{label} | episode {k + 1}/{total or len(watched)} ({goals}) | step {shot.step}",
-                     f"mission: {w.mission}",
-                     outcome_text(w.episode) if last and w.episode is not None else "", w.relabel if last else ""]
-            out.append((draw_frame(shot, view_size, lines, cell), END_MS if last else STEP_MS))
+            lines = panel_lines(w, shot.step, last, spec, label, k, total or len(watched))
+            image = (render_babyai.draw_picture(shot, lines) if spec.family == "babyai"
+                     else draw_frame(shot, spec.view_size, lines, cell))
+            out.append((image, END_MS if last else STEP_MS))
     return out
+
+
+def panel_lines(w: Watched, step: int, last: bool, spec: WorldSpec, label: str, k: int, total: int) -> list[str]:
+    """The text under a frame: run, episode, step, mission; on the last frame the outcome and the relabel."""
+    goals = ("level mission" if spec.family == "babyai"
+             else "held-out goal" if w.goal_set == "heldout" else "training goal")
+    return [f"{label} | episode {k + 1}/{total} ({goals}) | step {step}", f"mission: {w.mission}",
+            outcome_text(w.episode, spec) if last and w.episode is not None else "", w.relabel if last else ""]
 
 
 def save_gif(frames, path: Path) -> None:
@@ -224,13 +248,13 @@ def save_gif(frames, path: Path) -> None:
                    optimize=True)
 
 
-def save_strip(watched: list[Watched], view_size: int, cell: int, label: str, path: Path, per_row: int = 6) -> None:
+def save_strip(watched: list[Watched], spec: WorldSpec, cell: int, label: str, path: Path, per_row: int = 6) -> None:
     from PIL import Image
 
     rows = []
     for k, w in enumerate(watched):
         picks = sorted(set(np.linspace(0, len(w.frames) - 1, min(per_row, len(w.frames))).round().astype(int)))
-        single = frames_of([w], view_size, cell, label, first=k, total=len(watched))
+        single = frames_of([w], spec, cell, label, first=k, total=len(watched))
         rows.append([single[i][0] for i in picks])
     width = max(sum(im.width for im in row) for row in rows)
     height = sum(row[0].height for row in rows)
@@ -275,22 +299,26 @@ def main(argv: list[str] | None = None) -> int:
         strategy, note = load_relabeller(cfg, run_dir)
     except ConfigError as e:
         return _die(str(e))
+    spec = WorldSpec.of(cfg.world)
+    if args.goal_set != "train" and not spec.has_heldout:
+        return _die(f"--goal-set {args.goal_set}: {cfg.world.name} has no held-out goals (a BabyAI level "
+                    "has only its own missions)")
     if args.goal_set == "both":
-        train = watch(cfg, policy, (args.episodes + 1) // 2, "train", args.seed)
-        heldout = watch(cfg, policy, args.episodes // 2, "heldout", args.seed)
+        train = watch(cfg, policy, (args.episodes + 1) // 2, "train", args.seed, args.cell)
+        heldout = watch(cfg, policy, args.episodes // 2, "heldout", args.seed, args.cell)
         watched = [w for pair in zip(train, heldout + [None]) for w in pair if w is not None][:args.episodes]
     else:
-        watched = watch(cfg, policy, args.episodes, args.goal_set, args.seed)
+        watched = watch(cfg, policy, args.episodes, args.goal_set, args.seed, args.cell)
     rng = np.random.default_rng(args.seed)
     for w in watched:
-        w.relabel = relabel_text(strategy, note, w.episode, rng)
+        w.relabel = relabel_text(strategy, note, w.episode, rng, spec)
     label = f"{cfg.preset} @ {frames:,} frames" + (", averaged weights" if args.weights == "averaged" else "")
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix.lower() == ".gif":
-        save_gif(frames_of(watched, cfg.world.view_size, args.cell, label), out)
+        save_gif(frames_of(watched, spec, args.cell, label), out)
     else:
-        save_strip(watched, cfg.world.view_size, args.cell, label, out)
-    outcomes = [outcome_text(w.episode).split(" ")[0] for w in watched]
+        save_strip(watched, spec, args.cell, label, out)
+    outcomes = [outcome_text(w.episode, spec).split(" ")[0] for w in watched]
     print(f"{out}: {len(watched)} episodes of {run_dir} ({label}): {', '.join(outcomes)}")
     return 0
 

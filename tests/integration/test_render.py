@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 
 from hd_harness import start_cluster
 from higher_dist import render
@@ -15,6 +16,7 @@ from higher_dist.learning.acting import EpisodeCollector
 from higher_dist.world.spec import WRONG_PICK
 
 pytestmark = pytest.mark.slow
+torch.set_num_threads(1)  # the default spins every core, and these tests share the machine
 
 
 @pytest.fixture(scope="module")
@@ -135,3 +137,97 @@ def test_the_averaged_weights_can_be_drawn_and_a_run_without_them_is_refused(run
     err = capsys.readouterr().err
     assert "--weights averaged" in err and "dqn.average_tau=0" in err
     assert not (tmp_path / "none.png").exists()
+
+
+# -- a BabyAI level: minigrid's own picture of the room, the level's outcomes and language ------------
+LEVEL = "BabyAI-PickupDist-v0"
+
+
+@pytest.fixture(scope="module")
+def babyai_run(tmp_path_factory):
+    """A real HER run on a BabyAI level, learner and relabeler checkpoints written by the roles (~1 min)."""
+    from hd_harness import entry
+    from higher_dist.launch.topology import free_base_port
+
+    run = tmp_path_factory.mktemp("render-babyai") / "run"
+    proc = subprocess.run(entry("cluster", "--preset", "her", "--world", LEVEL, "--frames", "3000", "--actors", "1",
+                                "--no-dashboard", "--run-dir", run, "--port-base", free_base_port()),
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert (run / "learner.ckpt").exists()
+    return run
+
+
+def test_babyai_gif_and_strip_are_minigrids_pictures(babyai_run, tmp_path, capsys):
+    from PIL import Image
+
+    from higher_dist.world.babyai import BatchedBabyAI
+
+    gif, strip = tmp_path / "babyai.gif", tmp_path / "babyai.png"
+    for out in (gif, strip):
+        assert render.main([str(babyai_run), "--episodes", "2", "--cell", "16", "--out", str(out)]) == 0
+        assert f"2 episodes of {babyai_run}" in capsys.readouterr().out
+    level = BatchedBabyAI(LEVEL, 1)
+    level.reset()
+    picture = level.render_rgb(0, 16)  # the level's whole room, 16 pixels per cell
+    size = (max(picture.shape[1], 320), picture.shape[0] + render.PANEL_LINES * render.LINE_H + 6)
+    with Image.open(gif) as im:
+        assert im.format == "GIF" and im.n_frames >= 3 and im.size == size
+    with Image.open(strip) as im:
+        assert im.format == "PNG" and im.height == 2 * size[1]  # a row per episode
+
+
+def test_babyai_watch_takes_a_picture_before_every_action(babyai_run):
+    cfg, policy, _ = render.load_policy(babyai_run)
+    (watched,) = render.watch(cfg, policy, episodes=1, goal_set="train", seed=2, tile=8)
+    assert len(watched.frames) == watched.episode.length
+    assert [shot.step for shot in watched.frames] == list(range(watched.episode.length))
+    assert watched.frames[0].rgb.ndim == 3 and watched.frames[0].rgb.shape[2] == 3
+    assert watched.mission.startswith("pick up ")
+
+
+def test_babyai_panel_of_a_time_out_after_a_pickup_names_the_relabel(babyai_run):
+    from higher_dist.config_presets import make_config
+    from higher_dist.learning.agent import AgentBuilder
+    from higher_dist.learning.samples import real_episodes
+    from higher_dist.world import babyai_language as lang
+    from higher_dist.world.spec import TIMEOUT, WorldSpec
+
+    cfg, _, _ = render.load_policy(babyai_run)
+    spec = WorldSpec.of(cfg.world)
+    strategy, note = render.load_relabeller(cfg, babyai_run)
+    assert strategy.name == "expert" and note == ""
+    episodes = real_episodes(cfg.world, 40, seed=1)
+    failed = next(ep for ep in episodes if ep.outcome == TIMEOUT and ep.pick_step >= 0)
+    rng = np.random.default_rng(0)
+    color, type_ = lang.COLORS[failed.picked[0]], lang.TYPES[failed.picked[1]]
+    article = lang.ARTICLES[failed.picked[3]]
+    text = render.relabel_text(strategy, note, failed, rng, spec)
+    assert text == f'expert: "pick up {article} {color} {type_}"'
+    watched = render.Watched(lang.decode(failed.mission), [], episode=failed, relabel=text)
+    lines = render.panel_lines(watched, failed.length - 1, True, spec, "her", 0, 1)
+    assert lines[1] == f"mission: {lang.decode(failed.mission)}"
+    assert lines[2] == (f"TIME-OUT after {failed.length} steps, picked a {color} {type_} first "
+                        f"(step {failed.pick_step + 1})")
+    assert lines[3] == text and "level mission" in lines[0]
+    assert render.panel_lines(watched, 0, False, spec, "her", 0, 1)[2:] == ["", ""]  # only the last frame tells
+    # Neither a success nor a time-out that picked nothing is relabelled.
+    for ep in episodes:
+        if ep.outcome != TIMEOUT or ep.pick_step < 0:
+            assert render.relabel_text(strategy, note, ep, rng, spec) == ""
+    # HIGhER's generator describes the frame before the first pickup, in the level's language.
+    learned = AgentBuilder(make_config("higher", LEVEL)).relabeler()
+    seen = []
+    generate = learned.trainer.generate
+    learned.trainer.generate = lambda views: seen.append(views.copy()) or generate(views)
+    text = render.relabel_text(learned, "gate closed", failed, rng, spec)
+    assert text.startswith('generator: "') and text.endswith("[gate closed]"), text
+    np.testing.assert_array_equal(seen[0][0], failed.frames[failed.pick_step])
+
+
+def test_babyai_has_no_held_out_goals_to_draw(babyai_run, tmp_path, capsys):
+    for goal_set in ("heldout", "both"):
+        assert render.main([str(babyai_run), "--goal-set", goal_set, "--out", str(tmp_path / "x.png")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"{LEVEL} has no held-out goals" in err[0]
+    assert not (tmp_path / "x.png").exists()

@@ -183,6 +183,7 @@ LAYERS = (
     ("rundir",),
     ("launch",),
     ("roles",),
+    ("render_babyai",),  # below render, which draws through it
     ("analysis", "render"),
     ("plot", "reproduce", "bench"),
     ("cli", "docs_gen"),
