@@ -26,7 +26,8 @@ def parser() -> argparse.ArgumentParser:
         "its figures and results.md.",
         epilog="Experiments: main (DQN, DQN+HER, DQN+HIGhER, DQN+reward), noise (DQN+HER with attribute noise "
                "p in 0, 0.2, 0.5, 0.8, against DQN), trigger (HIGhER's generator switched on after 0, 1000, 2000 "
-               "pairs), generator (exact match vs 1k..5k expert pairs). Rerun the same command to resume.")
+               "pairs), generator (exact match vs 1k..5k expert pairs). On a BabyAI level: main without DQN+reward, "
+               "and trigger. Rerun the same command to resume.")
     p.add_argument("experiments", nargs="*", metavar="EXPERIMENT", help=f"any of {', '.join(plan_mod.EXPERIMENTS)} "
                    "(default: all)")
     p.add_argument("--seeds", type=positive_int, default=plan_mod.PAPER_SEEDS, help="seeds per method (paper: 5)")
@@ -68,8 +69,11 @@ def _main(args: argparse.Namespace, argv: list[str]) -> int:
         if "=" not in item:
             raise ConfigError(f"--set {item!r}: expected FIELD=VALUE")
     parallel = args.parallel or plan_mod.default_parallel()
+    experiments, notes = plan_mod.experiments_for(args.world, args.experiments)
+    for note in notes:
+        print(f"higher-reproduce: note: {note}")
     plan = plan_mod.build_plan(
-        out, args.experiments or list(plan_mod.EXPERIMENTS), args.seeds, args.frames, args.world, args.profile,
+        out, experiments, args.seeds, args.frames, args.world, args.profile,
         parallel, methods=[m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None,
         sets=args.set, actors=args.actors, generator_steps=args.generator_steps,
         command=["higher-reproduce", *argv])

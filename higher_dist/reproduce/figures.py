@@ -3,7 +3,7 @@
 A method is a plan variant (`her`, `noisy-her-p0.5`, ...); its seeds are interpolated onto the frames
 they all cover. The headline curves are the greedy evaluations (`success_rate_eval_train`,
 `success_rate_eval_heldout`); a run without any evaluation falls back to its training success and the
-legend says so. Small PNGs (6x4 inches at 80 dpi) go to DIR/figures.
+legend says so. A BabyAI level has no held-out goals: its plans draw no held-out figure. Small PNGs (6x4 inches at 80 dpi) go to DIR/figures.
 """
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import numpy as np
 
 from higher_dist import metrics as m
 from higher_dist.analysis.drawing import pyplot
+from higher_dist.config import is_babyai_world
 from higher_dist.analysis.runs import GRID_POINTS, REPLAY_KEYS, NoRun, Run, is_number, load_run, replay_fractions
 from higher_dist.reproduce.plan import GENERATOR_PAIRS, NOISE_LEVELS, TRIGGER_PAIRS, Plan
 
@@ -32,6 +33,11 @@ class Group:
     def key(self, wanted: str) -> str:
         """`wanted` when a run has it, else the training success (a run too short to be evaluated)."""
         return wanted if any(r.has(wanted) for r in self.runs) else m.SUCCESS_TRAIN
+
+
+def has_heldout(plan: Plan) -> bool:
+    """Whether the plan's world keeps goals out of training (FetchAttr does; a BabyAI level does not)."""
+    return not is_babyai_world(plan.settings.get("world", "paper"))
 
 
 def load_groups(plan: Plan) -> dict[str, Group]:
@@ -131,8 +137,10 @@ def draw_all(plan: Plan) -> dict[str, Path]:
     groups = load_groups(plan)
     written: dict[str, Path] = {}
     main = [groups[v] for v in MAIN_VARIANTS if v in groups]
-    for name, key, title in (("success_train", EVAL_TRAIN, "Greedy success, training goals"),
-                             ("success_heldout", EVAL_HELDOUT, "Greedy success, held-out goals")):
+    goal_sets = [("success_train", EVAL_TRAIN, "Greedy success, training goals")]
+    if has_heldout(plan):
+        goal_sets.append(("success_heldout", EVAL_HELDOUT, "Greedy success, held-out goals"))
+    for name, key, title in goal_sets:
         fig, ax = _figure(title, "environment frames", "success rate")
         if _curves(ax, main, key):
             written[name] = _save(fig, ax, out / f"{name}.png")

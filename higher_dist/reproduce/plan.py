@@ -6,6 +6,11 @@ so experiments that need the same run share it (the noise figure's DQN line is `
 second invocation with the same --out finds the runs of the first. The plan is written to
 DIR/plan.json before anything runs.
 
+On a BabyAI level (`--world BabyAI-...`) only what exists there is planned: `main` without DQN+reward
+(reward shaping is FetchAttr's; a level gives its own reward) and `trigger`. `noise` (noisy-her's
+attribute noise) and `generator` (the generator on FetchAttr's expert pairs) are FetchAttr's own:
+asked for by name they are refused, and "all experiments" leaves them out with a note.
+
 The paper's settings come from higher-cluster's `--profile paper` (config.py `paper_profile`); the
 default profile passes nothing, so a run gets this project's defaults.
 """
@@ -19,7 +24,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from higher_dist.config import Config, ConfigError
+from higher_dist.config import Config, ConfigError, is_babyai_world
 from higher_dist.config_flags import add_config_flags, config_from_args
 from higher_dist.config_presets import make_config
 from higher_dist.launch import layout
@@ -45,6 +50,13 @@ NOISE = ((("her", "her", "DQN+HER", ()),)
          + (("dqn", "dqn", "DQN", ()),))
 TRIGGER = tuple((f"higher-trigger{n}", "higher", f"DQN+HIGhER from {n} pairs",
                  (f"generator.n_min={n}", "generator.min_accuracy=0")) for n in TRIGGER_PAIRS)
+
+# What a BabyAI level cannot run, and why.
+NOT_ON_BABYAI = {
+    "noise": "it varies noisy-her's attribute noise, which is defined on FetchAttr's four attributes",
+    "generator": "it measures the generator on FetchAttr's expert pairs and held-out goals",
+}
+NOT_ON_BABYAI_VARIANTS = {"reward": "DQN+reward shapes FetchAttr's reward; a BabyAI level gives its own"}
 
 
 @dataclass(frozen=True)
@@ -103,6 +115,19 @@ def profile_flags(profile: str) -> tuple[str, ...]:
 
 
 # -- building the plan -------------------------------------------------------------------------------
+def experiments_for(world: str, asked: list[str] | None) -> tuple[list[str], list[str]]:
+    """(the experiments to plan, notes on what is left out). `asked` None or empty means all of them:
+    on a BabyAI level that leaves out those it cannot run, each with a note; asked by name, they are
+    refused (build_plan)."""
+    if not is_babyai_world(world):
+        return list(asked or EXPERIMENTS), []
+    chosen = list(asked) if asked else [e for e in EXPERIMENTS if e not in NOT_ON_BABYAI]
+    notes = [] if asked else [f"{e} skipped on {world}: {why}" for e, why in NOT_ON_BABYAI.items()]
+    if "main" in chosen:
+        notes += [f"main on {world} without {v}: {why}" for v, why in NOT_ON_BABYAI_VARIANTS.items()]
+    return chosen, notes
+
+
 def default_parallel() -> int:
     """Runs at once that fit this machine: one per core. A run's roles wait on each other (the learner on
     experience, the actor on weights), so one run alone leaves part of the machine idle; on the 2-core
@@ -128,6 +153,10 @@ def build_plan(out: str | os.PathLike, experiments: list[str], seeds: int, frame
     bad = [e for e in experiments if e not in EXPERIMENTS]
     if bad:
         raise ConfigError(f"experiment: unknown {bad}; choose from {', '.join(EXPERIMENTS)}")
+    babyai = is_babyai_world(world)
+    for experiment in experiments:
+        if babyai and experiment in NOT_ON_BABYAI:
+            raise ConfigError(f"experiment {experiment}: not on a BabyAI level ({world}): {NOT_ON_BABYAI[experiment]}")
     if seeds < 1 or frames < 1 or parallel < 1 or generator_steps < 1:
         raise ConfigError("--seeds, --frames, --parallel and --generator-steps must be >= 1")
     actors = actors or default_actors(parallel)
@@ -151,6 +180,8 @@ def build_plan(out: str | os.PathLike, experiments: list[str], seeds: int, frame
                 continue
             for variant, preset, label, extra in tables[experiment]:
                 if methods and variant not in methods and preset not in methods:
+                    continue
+                if babyai and variant in NOT_ON_BABYAI_VARIANTS:
                     continue
                 flags = (*profile_flags(profile), *(x for s in extra for x in ("--set", s)), *common)
                 _add(by_name, names, RunSpec(f"{variant}-s{seed}", "cluster", variant, label, preset, seed, world,
