@@ -8,9 +8,9 @@ import platform
 import sys
 from pathlib import Path
 
-from higher_dist.config import ConfigError
-from higher_dist.config_flags import world_name
-from higher_dist.config_flags import positive_int
+from higher_dist.config import ConfigError, is_babyai_world
+from higher_dist.config_flags import positive_int, world_name
+from higher_dist.config_presets import make_config
 from higher_dist.paths import ensure_folder
 from higher_dist.reproduce import plan as plan_mod
 from higher_dist.reproduce.claims import write_results
@@ -31,8 +31,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("experiments", nargs="*", metavar="EXPERIMENT", help=f"any of {', '.join(plan_mod.EXPERIMENTS)} "
                    "(default: all)")
     p.add_argument("--seeds", type=positive_int, default=plan_mod.PAPER_SEEDS, help="seeds per method (paper: 5)")
-    p.add_argument("--frames", type=positive_int, default=plan_mod.PAPER_FRAMES,
-                   help="env frames per run (paper: 5000000; 1e5 style accepted)")
+    p.add_argument("--frames", type=positive_int, default=None,
+                   help="env frames per run (default: the paper's 5000000; a BabyAI level's own budget, "
+                        "1000000; 1e5 style accepted)")
     p.add_argument("--profile", choices=plan_mod.PROFILES, default="paper",
                    help="paper: the paper's settings; default: this project's defaults")
     p.add_argument("--parallel", type=positive_int, default=None,
@@ -68,6 +69,8 @@ def _main(args: argparse.Namespace, argv: list[str]) -> int:
     for item in args.set:
         if "=" not in item:
             raise ConfigError(f"--set {item!r}: expected FIELD=VALUE")
+    if args.frames is None:  # the world's own budget: the paper's 5M frames, a BabyAI level's 1M
+        args.frames = make_config("her", args.world).frames if is_babyai_world(args.world) else plan_mod.PAPER_FRAMES
     parallel = args.parallel or plan_mod.default_parallel()
     experiments, notes = plan_mod.experiments_for(args.world, args.experiments)
     for note in notes:
