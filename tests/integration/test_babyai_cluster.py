@@ -1,0 +1,79 @@
+"""HIGhER on a BabyAI level end to end: `higher-cluster --preset higher --world BabyAI-PickupDist-v0 --frames
+20000 --no-dashboard` as real processes over real sockets on 127.0.0.1, until the learner ends the run. Frames
+flow, the generator learns the level's language from its successes, and its relabelled copies reach the replay;
+the dashboard draws the run's records."""
+from __future__ import annotations
+
+import io
+import time
+
+import pytest
+from rich.console import Console
+
+from hd_harness import Proc, RunWatch, entry
+from higher_dist.launch.topology import free_base_port
+from higher_dist.roles.dashboard_view import DashboardState, render
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(700)]
+
+LEVEL = "BabyAI-PickupDist-v0"
+FRAMES = 20_000
+
+
+RUN_TIMEOUT_S = 600.0  # about 60 s alone on 2 cores; generous for a loaded machine
+
+
+@pytest.fixture(scope="module")
+def babyai_run(tmp_path_factory) -> tuple[int | None, str, list[dict]]:
+    base = tmp_path_factory.mktemp("babyai")
+    run_dir = base / "run"
+    # The issue's command as given, plus a free port range so parallel tests never collide.
+    argv = entry("cluster", "--preset", "higher", "--world", LEVEL, "--frames", FRAMES, "--no-dashboard",
+                 "--port-base", free_base_port(), "--run-dir", run_dir)
+    launcher = Proc(argv, base / "launcher.out", base)
+    watch = RunWatch(run_dir, [launcher])
+    try:
+        deadline = time.monotonic() + RUN_TIMEOUT_S
+        while launcher.running() and time.monotonic() < deadline:
+            launcher.snapshot()
+            time.sleep(0.5)
+        rc = launcher.wait(5)
+        yield rc, watch.diagnostics(), watch.records()
+    finally:
+        watch.cleanup()  # every process the launcher started, whatever happened
+
+
+def test_the_run_ends_at_its_budget_with_frames_flowing(babyai_run):
+    rc, diagnostics, records = babyai_run
+    assert rc == 0, diagnostics
+    last = records[-1]
+    assert last["world"] == LEVEL and last["frames"] >= FRAMES
+    assert [r["frames"] for r in records] == sorted(r["frames"] for r in records) and records[0]["frames"] < FRAMES
+    assert last["updates"] > 0 and last["rejected_messages"] == 0 and last["learner_rejected"] == 0
+
+
+def test_relabelled_episodes_reach_the_replay(babyai_run):
+    _, _, records = babyai_run
+    last = records[-1]
+    assert last["relabel_strategy"] == "learned" and last["relabel_gate_open"] is True
+    assert last["relabelled_episodes"] > 0 and last["replay_relabelled"] > 0
+    assert last["replay_wrong_pick"] == 0  # a wrong pickup never ends a BabyAI episode: failures time out
+    assert 0.0 <= last["relabel_accuracy"] <= 1.0 and last["generator_val_accuracy"] >= 0.5
+
+
+def test_greedy_evaluation_scores_the_levels_own_missions_only(babyai_run):
+    _, _, records = babyai_run
+    evaluated = [r for r in records if r.get("success_rate_eval_train") is not None]
+    assert evaluated, "no greedy evaluation was recorded"
+    assert all(r.get("success_rate_eval_heldout") is None for r in records)  # a level has no held-out goals
+
+
+def test_the_dashboard_draws_the_runs_records(babyai_run):
+    _, _, records = babyai_run
+    state = DashboardState()
+    for k, record in enumerate(records):
+        state.update(record, now=float(k))
+    console = Console(record=True, width=100, file=io.StringIO(), color_system=None)
+    console.print(render(state, now=float(len(records))))
+    text = console.export_text()
+    assert LEVEL in text and f"{records[-1]['frames']:,}" in text
