@@ -18,7 +18,9 @@ import itertools
 
 import numpy as np
 
-PAD, BEG, END = 0, 1, 2
+from higher_dist.world import tokens
+
+PAD, BEG, END = tokens.PAD, tokens.BEG, tokens.END
 MISSION_LEN = 10  # the longest, "pick up the purple ball in front of you", has 9 words
 
 COLORS = ("red", "green", "blue", "purple", "yellow", "grey")  # minigrid's COLOR_TO_IDX order
@@ -96,51 +98,17 @@ def describe(attrs, rng: np.random.Generator | None = None) -> str:
 
 def encode(text: str) -> np.ndarray:
     """Text -> `(MISSION_LEN,)` int64 word ids padded with PAD. Unknown words raise ValueError."""
-    words = text.split()
-    if len(words) > MISSION_LEN:
-        raise ValueError(f"encode: {len(words)} words do not fit in MISSION_LEN={MISSION_LEN}: {text!r}")
-    tokens = np.full(MISSION_LEN, PAD, dtype=np.int64)
-    for i, word in enumerate(words):
-        if word not in WORD_TO_ID or WORD_TO_ID[word] in (PAD, BEG, END):
-            raise ValueError(f"encode: unknown word {word!r} in {text!r}")
-        tokens[i] = WORD_TO_ID[word]
-    return tokens
+    return tokens.encode(text, WORD_TO_ID, MISSION_LEN)
 
 
-def _words_of(tokens) -> list[int] | None:
+def _words_of(token_ids) -> list[int] | None:
     """Word ids between an optional leading BEG and the first END / PAD; None if ill-formed."""
-    ids = np.asarray(tokens).reshape(-1)
-    if ids.dtype.kind not in "iu":
-        return None
-    ids = ids.tolist()
-    if ids and ids[0] == BEG:
-        ids = ids[1:]
-    words = []
-    for position, i in enumerate(ids):
-        if i in (END, PAD):
-            # Only padding may follow the sentence: a word after it means a malformed sequence.
-            if any(j not in (PAD, END) for j in ids[position + 1:]):
-                return None
-            break
-        if not (0 <= i < len(VOCAB)) or i == BEG:
-            return None
-        words.append(i)
-    return words
+    return tokens.word_ids(token_ids, len(VOCAB))
 
 
-def decode(tokens) -> str:
+def decode(token_ids) -> str:
     """Word ids -> text; skips a leading BEG, stops at END or PAD. Out-of-range ids raise ValueError."""
-    ids = np.asarray(tokens).reshape(-1)
-    if ids.dtype.kind not in "iu" or (ids.size and (ids.min() < 0 or ids.max() >= len(VOCAB))):
-        raise ValueError(f"decode: token ids must be integers in [0, {len(VOCAB)}), got {ids.tolist()}")
-    words = []
-    for position, i in enumerate(ids.tolist()):
-        if i == BEG and position == 0:
-            continue
-        if i in (END, PAD):
-            break
-        words.append(VOCAB[i])
-    return " ".join(words)
+    return tokens.decode(token_ids, VOCAB)
 
 
 def _parse_ids(ids: list[int]) -> np.ndarray | None:
@@ -172,28 +140,14 @@ def parse(tokens_or_text) -> np.ndarray | None:
     return _parse_ids(ids)
 
 
-def parse_many(tokens) -> tuple[np.ndarray, np.ndarray]:
+def parse_many(token_rows) -> tuple[np.ndarray, np.ndarray]:
     """Rows of word ids `(n, L)` -> (attrs `(n, 4)` int64, -1 rows where unparsed; ok `(n,)` bool)."""
-    tokens = np.asarray(tokens)
-    tokens = tokens.reshape(len(tokens), -1) if tokens.ndim else tokens.reshape(1, -1)
-    attrs = np.full((len(tokens), 4), -1, dtype=np.int64)
-    ok = np.zeros(len(tokens), dtype=bool)
-    for row, t in enumerate(tokens):
-        parsed = parse(t)
-        if parsed is not None:
-            attrs[row], ok[row] = parsed, True
-    return attrs, ok
+    return tokens.parse_rows(token_rows, parse)
 
 
 def with_markers(missions) -> np.ndarray:
     """Missions `(n, MISSION_LEN)` -> decoder targets `(n, MISSION_LEN + 2)`: BEG words END PAD..."""
-    missions = np.asarray(missions, dtype=np.int64).reshape(-1, MISSION_LEN)
-    out = np.full((len(missions), MISSION_LEN + 2), PAD, dtype=np.int64)
-    out[:, 0] = BEG
-    out[:, 1:-1] = missions
-    lengths = (missions != PAD).sum(axis=1)
-    out[np.arange(len(missions)), lengths + 1] = END
-    return out
+    return tokens.with_markers(missions, MISSION_LEN)
 
 
 def satisfies(described, objects) -> np.ndarray:
