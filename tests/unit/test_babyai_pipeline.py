@@ -20,6 +20,7 @@ from higher_dist.learning.samples import real_episodes
 from higher_dist.wire import WireError, decode, encode, pack_episodes, unpack_episodes
 from higher_dist.world import babyai_language as lang
 from higher_dist.world.spec import WorldSpec
+from support.babyai_lies import LIES, lie
 
 torch.set_num_threads(1)  # a test shares the machine; torch's default of every core spins under load
 
@@ -97,62 +98,10 @@ def test_honest_episodes_and_their_copies_pass_the_boundary_and_fill_the_replay(
     assert core.replay.composition()["relabelled"] > 0
 
 
-def _lie(kind: str, rng: np.random.Generator) -> tuple[Episode, str]:
-    """One episode made wrong in one way a peer could lie, and the reason it must be dropped under."""
-    success = next(ep for ep in EPISODES if ep.outcome == SUCCESS)
-    failed = FAILED_PICKS[int(rng.integers(len(FAILED_PICKS)))]
-    copy = ExpertRelabel(spec=SPEC).relabel([failed])[0]
-
-    def clone(ep: Episode, **changes) -> Episode:
-        fresh = dict(frames=ep.frames.copy(), actions=ep.actions.copy(), rewards=ep.rewards.copy(),
-                     mission=ep.mission.copy())
-        return replace(ep, **{**fresh, **changes})
-    if kind == "short_timeout":
-        return clone(failed, frames=failed.frames[:-1], actions=failed.actions[:-1], rewards=failed.rewards[:-1]), "outcome"
-    if kind == "success_reward":
-        ep = clone(success)
-        ep.rewards[-1] = 1.0
-        return ep, "reward"
-    if kind == "pick_not_a_pickup":
-        ep = clone(failed)
-        ep.actions[ep.pick_step] = 2
-        return ep, "outcome"
-    if kind == "picked_elsewhere":
-        ep = clone(failed, picked=failed.picked.copy())
-        ep.picked[0] = (ep.picked[0] + 1) % len(lang.COLORS)
-        return ep, "picked_not_in_front"
-    if kind == "copy_goes_on":  # a copy that keeps the steps after its pick, rewarded at the end
-        ep = clone(failed, relabelled=True, mission=copy.mission)
-        ep.rewards[-1] = SPEC.pick_reward(ep.length)
-        return ep, "relabel_inconsistent"
-    if kind == "copy_unrewarded":
-        ep = clone(copy)
-        ep.rewards[-1] = 0.0
-        return ep, "reward"
-    if kind == "mission_not_the_goal":
-        other = lang.mission_tokens(np.array([[(success.goal[0] + 1) % 6, success.goal[1], -1, 0]]))[0]
-        return clone(success, mission=other), "mission_goal"
-    if kind == "ungrammatical":
-        ep = clone(success)
-        ep.mission[:3] = ep.mission[[1, 0, 2]]  # "up pick ..."
-        return ep, "mission_grammar"
-    if kind == "padding_channel":
-        ep = clone(success)
-        ep.frames[0, 0, 0, 3] = 1  # the fourth channel of a BabyAI view is always 0
-        return ep, "cell"
-    if kind == "plural_unset":
-        return clone(success, goal=np.array([*success.goal[:3], -1], np.int8)), "attribute"
-    raise KeyError(kind)
-
-
-LIES = ("short_timeout", "success_reward", "pick_not_a_pickup", "picked_elsewhere", "copy_goes_on",
-        "copy_unrewarded", "mission_not_the_goal", "ungrammatical", "padding_channel", "plural_unset")
-
-
 @pytest.mark.parametrize("kind", LIES)
 def test_each_lie_is_dropped_under_its_reason_and_the_rest_kept(kind):
     rng = np.random.default_rng(LIES.index(kind))
-    bad, reason = _lie(kind, rng)
+    bad, reason = lie(kind, EPISODES, SPEC, rng)
     honest = EPISODES[:5]
     back, rejects = _unpack(honest[:2] + [bad] + honest[2:])
     assert rejects == [reason] and len(back) == len(honest)

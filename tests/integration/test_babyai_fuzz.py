@@ -1,0 +1,112 @@
+"""Nothing a peer sends kills a role on a BabyAI level either: a real learner and a real relabeler of a
+`BabyAI-PickupDist-v0` run take 2,000 wrong messages (every lie of tests/support/babyai_lies.py, episodes of
+our FetchAttr world, relabelled copies from an actor), then honest episodes through the relabeler. Both stay alive, every honest episode arrives with its expert copy, the learner
+updates, and the reject counters add up for the messages whose reason is known."""
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+import pytest
+import zmq
+
+from hd_harness import Proc, RunWatch, entry
+from higher_dist.config_presets import make_config
+from higher_dist.launch.topology import Endpoints, free_base_port
+from higher_dist.learning.episode import TIMEOUT
+from higher_dist.learning.hindsight.relabel import ExpertRelabel
+from higher_dist.learning.samples import real_episodes
+from higher_dist.wire import codec
+from higher_dist.wire.episodes import pack_episodes
+from higher_dist.world.spec import WorldSpec
+from support.babyai_lies import COPY_LIES, LIES, ORIGINAL_LIES, lie
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
+
+LEVEL = "BabyAI-PickupDist-v0"
+MESSAGES = 2_000
+SETTINGS = {"replay.min_size": 300, "replay.samples_per_insert": 1, "dqn.batch_size": 32, "dqn.compile": "false",
+            "network.conv_channels": "[16]", "stats_every_s": 0.5, "checkpoint_every_s": 600}
+
+
+def _push(ctx: zmq.Context, endpoint: str) -> zmq.Socket:
+    sock = ctx.socket(zmq.PUSH)
+    sock.setsockopt(zmq.SNDHWM, 1000)
+    sock.setsockopt(zmq.SNDTIMEO, 60_000)  # a receiver that stopped reading fails the test, not hangs it
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(endpoint)
+    return sock
+
+
+def test_wrong_messages_on_a_level_kill_nothing_and_lose_nothing(tmp_path):
+    cfg = make_config("her", LEVEL)
+    spec = WorldSpec.of(cfg.world)
+    port = free_base_port()
+    endpoints = Endpoints.from_base("127.0.0.1", port)
+    flags = ["--preset", "her", "--world", LEVEL, "--actors", "1", "--frames", "100000000"]
+    for key, value in SETTINGS.items():
+        flags += ["--set", f"{key}={value}"]
+    run_dir = tmp_path / "run"
+    learner = Proc(entry("learner", *flags, "--run-dir", run_dir, "--port-base", port), tmp_path / "l.out", tmp_path)
+    relabeler = Proc(entry("relabeler", "--learner", endpoints.control, "--state-dir", tmp_path / "rl"),
+                     tmp_path / "r.out", tmp_path)
+    watch = RunWatch(run_dir, [learner, relabeler])
+    ctx = zmq.Context()
+    try:
+        watch.wait_for("the relabeler registered",
+                       lambda r: any(row["role"] == "relabeler" and row["state"] == "alive" for row in r["roles"]),
+                       timeout=180)
+        to_learner, to_relabeler = _push(ctx, endpoints.experience), _push(ctx, endpoints.episodes)
+        rng = np.random.default_rng(12)
+        pool = real_episodes(cfg.world, 300, seed=3)
+        fetchattr = real_episodes(make_config("her", "paper").world, 60, seed=3)
+        expected: collections.Counter = collections.Counter()
+        unknown_reason = 0  # random damage: dropped under some reason, or harmless
+        for i in range(MESSAGES):
+            kind = LIES[int(rng.integers(len(LIES)))]
+            if i % 10 == 0:  # our own world's episodes: not this level's (a whole batch of them)
+                batch = [fetchattr[int(j)] for j in rng.integers(len(fetchattr), size=4)]
+                to_learner.send_multipart(codec.encode("episodes", *pack_episodes(batch), sender="relabeler"))
+                unknown_reason += len(batch)
+            elif i % 10 == 1:  # a relabelled copy from an actor, at the relabeler
+                failed = next(ep for ep in pool[int(rng.integers(100)):] if ep.outcome == TIMEOUT and ep.pick_step >= 0)
+                copy = ExpertRelabel(spec=spec).relabel([failed])
+                to_relabeler.send_multipart(codec.encode("episodes", *pack_episodes(copy), sender="actor0"))
+                expected["relabel_origin"] += 1
+            elif kind in ORIGINAL_LIES and i % 2:
+                bad, reason = lie(kind, pool, spec, rng)
+                to_relabeler.send_multipart(codec.encode("episodes", *pack_episodes([bad]), sender="actor0"))
+                expected[reason] += 1
+            else:
+                bad, reason = lie(kind, pool, spec, rng)
+                to_learner.send_multipart(codec.encode("episodes", *pack_episodes([bad]), sender="relabeler"))
+                expected[reason] += 1
+        assert set(COPY_LIES) <= set(LIES)
+
+        def send_honest(seed: int) -> list:
+            honest = real_episodes(cfg.world, 240, seed=seed)
+            for start in range(0, len(honest), 8):
+                to_relabeler.send_multipart(codec.encode("episodes", *pack_episodes(honest[start:start + 8]),
+                                                         sender="actor0"))
+            return honest
+
+        honest = send_honest(99)
+        total = sum(expected.values()) + unknown_reason
+
+        def settled(r):
+            by_reason = r.get("rejects_by_reason") or {}
+            return r["episodes"] == len(honest) and sum(by_reason.values()) >= total and r["updates"] > 0
+
+        later = watch.wait_for("every honest episode in and every reject counted", settled, timeout=500)
+        assert learner.running() and relabeler.running()
+        failed_picks = sum(ep.outcome == TIMEOUT and ep.pick_step >= 0 for ep in honest)
+        assert later["frames"] == sum(ep.length for ep in honest) and later["episodes"] == len(honest)
+        assert later["relabelled_episodes"] == failed_picks  # every honest failure's expert copy, no more
+        by_reason = {k: v for k, v in later["rejects_by_reason"].items() if v}
+        for reason, count in expected.items():
+            assert by_reason.get(reason, 0) >= count, (reason, by_reason, dict(expected))
+        assert sum(by_reason.values()) == total, (by_reason, dict(expected), unknown_reason)
+        assert later["handler_errors"] == 0
+    finally:
+        ctx.destroy(linger=0)
+        watch.cleanup()
