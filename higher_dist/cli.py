@@ -65,6 +65,15 @@ def _run(prog: str, build: Callable[[], int]) -> int:
         return _die(prog, str(e))
 
 
+def _world_checked(cfg):
+    """The config, once its world can be built (a BabyAI id that minigrid has as a pickup level): refused
+    here in one line rather than by every role that would build it and die."""
+    from higher_dist.world.spec import WorldSpec  # numpy only; minigrid only for a BabyAI world
+
+    WorldSpec.of(cfg.world)
+    return cfg
+
+
 def cluster_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-cluster", description="Run learner, relabeler, actors and dashboard here.",
                                 formatter_class=DefaultsHelp)
@@ -87,7 +96,7 @@ def cluster_main(argv: list[str] | None = None) -> int:
         if args.resume:
             cfg = resumed_config(args, args.run_dir)  # the run's config.json; changed flags refused by name
         else:
-            cfg = config_from_args(args)
+            cfg = _world_checked(config_from_args(args))
             if args.actors is None:  # the layout's choice for this host and the learner's device
                 cfg = replace(cfg, actors=default_actors(available_cores(), str(resolve_device(cfg.device))))
         if args.print_config:
@@ -128,7 +137,7 @@ def learner_main(argv: list[str] | None = None) -> int:
         elif args.resume:
             cfg = resumed_config(args, args.run_dir)
         else:
-            cfg = config_from_args(args)
+            cfg = _world_checked(config_from_args(args))
         if args.print_config:
             print(cfg.to_json())
             return 0
@@ -230,7 +239,7 @@ def run_main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"--resume: higher-run keeps no checkpoint (learning/runner.py saves neither "
                               f"network nor replay), so {args.run_dir} cannot be continued; start a new --run-dir, "
                               "or use higher-cluster, whose runs resume")
-        cfg = config_from_args(args)
+        cfg = _world_checked(config_from_args(args))
         if args.print_config:
             print(cfg.to_json())
             return 0

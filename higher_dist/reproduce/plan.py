@@ -29,6 +29,7 @@ from higher_dist.config_flags import add_config_flags, config_from_args
 from higher_dist.config_presets import make_config
 from higher_dist.launch import layout
 from higher_dist.rundir import atomic_write_bytes
+from higher_dist.world.spec import WorldSpec
 
 EXPERIMENTS = ("main", "noise", "trigger", "generator")
 PROFILES = ("paper", "default")
@@ -226,7 +227,12 @@ def check_configs(plan: Plan) -> dict[str, Config]:
             args = parser.parse_args(argv)
         except SystemExit:
             raise ConfigError(f"run {run.name}: flags refused: {' '.join(argv)}") from None
-        configs[run.name] = config_from_args(args)
+        cfg = config_from_args(args)
+        try:  # a world that cannot be built (a BabyAI id that is no pickup level) is refused here
+            WorldSpec.of(cfg.world)
+        except ValueError as e:
+            raise ConfigError(f"--world: {e}") from None
+        configs[run.name] = cfg
     return configs
 
 

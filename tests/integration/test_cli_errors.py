@@ -50,7 +50,12 @@ def test_cluster_refuses_bad_flags_as_a_process(tmp_path, flags, expected):
 
 @pytest.mark.parametrize("flags, expected", [
     (["--preset", "nope"], ["--preset", "invalid choice", "'nope'"]),
-    (["--world", "nope"], ["--world", "invalid choice", "'nope'"]),
+    (["--world", "nope"], ["--world", "unknown world", "'nope'", "BabyAI-PickupDist-v0"]),
+    (["--world", "BabyAI-GoToRedBall-v0"], ["'BabyAI-GoToRedBall-v0'", "not a BabyAI pickup level",
+                                            "BabyAI-PickupDist-v0"]),
+    (["--world", "BabyAI-Nope-v0"], ["'BabyAI-Nope-v0'", "unknown id"]),
+    (["--world", "BabyAI-PickupDist-v0", "--preset", "reward"], ["world.reward_shaping", "BabyAI"]),
+    (["--world", "BabyAI-PickupDist-v0", "--set", "world.view_size=5"], ["world.view_size", "7x7"]),
     (["--actors", "0"], ["--actors", "positive integer", "0"]),
     (["--envs-per-actor", "-3"], ["--envs-per-actor", "positive integer"]),
     (["--world", "small", "--set", "world.n_objects=1000"], ["world.n_objects", "1000", "do not fit"]),

@@ -47,6 +47,19 @@ def test_fetchattrs_own_experiments_are_refused_in_one_line(tmp_path, capsys):
     assert not (tmp_path / "p").exists()
 
 
+def test_a_level_that_is_no_pickup_level_is_refused_before_anything_runs(tmp_path, capsys):
+    out = tmp_path / "p"
+    assert cli.main(["--world", "BabyAI-GoToRedBall-v0", "--dry-run", "--out", str(out), "main"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "'BabyAI-GoToRedBall-v0'" in err[0] and "not a BabyAI pickup level" in err[0]
+    assert not out.exists()
+
+
+def test_a_levels_plan_runs_its_own_budget(tmp_path, capsys):
+    assert cli.main(["--world", LEVEL, "--seeds", "1", "--dry-run", "--out", str(tmp_path / "p"), "main"]) == 0
+    assert "1,000,000 frames per run" in capsys.readouterr().out
+
+
 def test_dry_run_of_main_on_a_level_lists_six_runs(tmp_path, capsys):
     out = tmp_path / "never"
     assert cli.main(["--world", LEVEL, "--seeds", "2", "--dry-run", "--out", str(out), "main"]) == 0
