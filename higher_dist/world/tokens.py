@@ -62,7 +62,8 @@ def decode(tokens, vocab: tuple[str, ...]) -> str:
 def parse_rows(tokens, parse: Callable[[np.ndarray], np.ndarray | None]) -> tuple[np.ndarray, np.ndarray]:
     """Rows of word ids `(n, L)` -> (attrs `(n, 4)` int64, -1 rows where unparsed; ok `(n,)` bool)."""
     tokens = np.asarray(tokens)
-    tokens = tokens.reshape(len(tokens), -1) if tokens.ndim else tokens.reshape(1, -1)
+    if tokens.ndim < 2:  # one mission
+        tokens = tokens.reshape(1, -1)
     attrs = np.full((len(tokens), 4), -1, dtype=np.int64)
     ok = np.zeros(len(tokens), dtype=bool)
     for row, t in enumerate(tokens):
