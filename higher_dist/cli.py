@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 import time
 from dataclasses import replace
@@ -221,7 +222,7 @@ def run_main(argv: list[str] | None = None) -> int:
     p.add_argument("--run-dir", required=True)
     p.add_argument("--metrics-every", type=positive_int, default=10_000, help="frames between metric lines")
     p.add_argument("--resume", action="store_true",
-                   help="refused: higher-run keeps no checkpoint (use higher-cluster for runs that resume)")
+                   help="continue the run in --run-dir from its runner.ckpt, with its config.json")
     args = p.parse_args(argv)
 
     def go() -> int:
@@ -233,21 +234,21 @@ def run_main(argv: list[str] | None = None) -> int:
         from higher_dist.launch.layout import available_cores
 
         if args.resume:
-            from higher_dist.resume import saved_config
-
-            saved_config(args.run_dir)  # not a run directory: said as higher-cluster --resume says it
-            raise ConfigError(f"--resume: higher-run keeps no checkpoint (learning/runner.py saves neither "
-                              f"network nor replay), so {args.run_dir} cannot be continued; start a new --run-dir, "
-                              "or use higher-cluster, whose runs resume")
-        cfg = _world_checked(config_from_args(args))
+            cfg = resumed_config(args, args.run_dir)  # the run's config.json; changed flags refused by name
+            state = RunDir(args.run_dir).load_checkpoint("runner")
+            if state is None:
+                raise ConfigError(f"--resume: {args.run_dir} holds no runner.ckpt to continue from (a run of "
+                                  "higher-cluster resumes with higher-cluster --resume)")
+        else:
+            cfg = _world_checked(config_from_args(args))
+            state = None
         if args.print_config:
             print(cfg.to_json())
             return 0
         held = [name for name in ("config.json", "metrics.jsonl") if (Path(args.run_dir) / name).exists()]
-        if held:
-            raise ConfigError(f"--run-dir {args.run_dir} already holds a run ({', '.join(held)}); higher-run does "
-                              "not checkpoint, so it starts runs only in a new --run-dir (higher-cluster --resume "
-                              "continues a cluster run)")
+        if held and not args.resume:
+            raise ConfigError(f"--run-dir {args.run_dir} already holds a run ({', '.join(held)}): add --resume "
+                              "to continue it, or choose another --run-dir")
         # One process acts and learns: it may use every core.
         torch.set_num_threads(cfg.torch_threads or available_cores())
         rd = RunDir(args.run_dir, tensorboard=cfg.tensorboard)
@@ -257,7 +258,15 @@ def run_main(argv: list[str] | None = None) -> int:
             rd.append_metrics(record)
             print(json.dumps(record), flush=True)
 
-        SingleProcessRunner(cfg, log=log).run(metrics_every=args.metrics_every)
+        runner = SingleProcessRunner(cfg, log=log)
+        if state is not None:
+            runner.load_state_dict(state)
+            print(f"higher-run: resumed {args.run_dir} at {runner.frames_done:,} frames", flush=True)
+        stopping = []  # Ctrl-C or SIGTERM: finish the round, checkpoint, exit
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stopping.append(True))
+        runner.run(metrics_every=args.metrics_every, checkpoint=lambda: rd.save_checkpoint("runner", runner.state_dict()),
+                   checkpoint_every_s=cfg.checkpoint_every_s, stop=lambda: bool(stopping))
         return 0
 
     return _run("higher-run", go)

@@ -35,6 +35,28 @@ class SingleProcessRunner:
         self.policy = self.agent.policy()
         self.eval_policy = self.agent.policy()  # evaluation loads the learner's current weights here
         self.weights_version = 0
+        self.frames_done = 0  # env frames stepped by this run, across resumes
+        self.elapsed_s = 0.0  # seconds of running before this process (a resumed run's clock goes on)
+        self._sync_policy()
+
+    # -- checkpoints: what a resumed run needs to go on as if it had not stopped -----------------------
+    def state_dict(self) -> dict:
+        """The learner (replay included when `replay.checkpoint_replay`), the relabeler, the generator's
+        pace, the exploration generators and the run's clocks. Episodes in flight are not kept: a resumed
+        run starts fresh episodes, as a restarted actor does."""
+        return {"core": self.core.state_dict(with_replay=self.cfg.replay.checkpoint_replay),
+                "relabeler": self.relabeler.state_dict(), "pace": self.pace.state_dict(),
+                "rngs": [rng.bit_generator.state for rng in self.rngs], "torch_rng": torch.get_rng_state(),
+                "frames_done": self.frames_done, "elapsed_s": self.elapsed_s, "config": self.cfg.to_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.core.load_state_dict(state["core"])
+        self.relabeler.load_state_dict(state["relabeler"])
+        self.pace.load_state_dict(state["pace"])
+        for rng, saved in zip(self.rngs, state["rngs"]):
+            rng.bit_generator.state = saved
+        torch.set_rng_state(state["torch_rng"])
+        self.frames_done, self.elapsed_s = int(state["frames_done"]), float(state["elapsed_s"])
         self._sync_policy()
 
     def _sync_policy(self) -> None:
@@ -43,15 +65,21 @@ class SingleProcessRunner:
         for c in self.collectors:
             c.weights_version = self.weights_version
 
-    def run(self, frames: int | None = None, metrics_every: int = 10_000) -> dict:
+    def run(self, frames: int | None = None, metrics_every: int = 10_000,
+            checkpoint: Callable[[], None] | None = None, checkpoint_every_s: float = 300.0,
+            stop: Callable[[], bool] = lambda: False) -> dict:
+        """Act and learn until `frames` env frames in all (default: the config's budget) or until `stop()`
+        says so between rounds; a resumed run goes on from its `frames_done`. `checkpoint` is called every
+        `checkpoint_every_s` and when the loop ends."""
         budget = frames if frames is not None else self.cfg.frames
-        frames_done = 0
-        next_metrics = metrics_every
-        evaluation = self.agent.evaluation_cadence()
-        start = time.perf_counter()
+        frames_done = self.frames_done
+        next_metrics = (frames_done // metrics_every + 1) * metrics_every
+        evaluation = self.agent.evaluation_cadence(self.core.frames)
+        start = time.perf_counter() - self.elapsed_s
+        last_checkpoint = time.perf_counter()
         record: dict = {}
         last_eval: dict = {}
-        while frames_done < budget:
+        while frames_done < budget and not stop():
             # Every module call of a round waits out a background compile's trace (compiled_loss.py).
             with TRACING_GATE.using():
                 for i, collector in enumerate(self.collectors):
@@ -72,6 +100,11 @@ class SingleProcessRunner:
                     record = self.metrics(frames_done, time.perf_counter() - start)
                     record.update(last_eval)
                     self.log(record)
+            self.frames_done, self.elapsed_s = frames_done, time.perf_counter() - start
+            if checkpoint is not None and (frames_done >= budget or stop()
+                                           or time.perf_counter() - last_checkpoint >= checkpoint_every_s):
+                checkpoint()
+                last_checkpoint = time.perf_counter()
         return record
 
     def _handle(self, episodes) -> None:
@@ -94,6 +127,7 @@ class SingleProcessRunner:
         record.update({
             m.FRAMES: frames_done, m.REJECTED: 0, m.PRESET: self.cfg.preset,
             m.WORLD: self.cfg.world.name, m.FRAMES_BUDGET: self.cfg.frames,
+            m.ELAPSED_S: round(elapsed, 1),
             m.FRAMES_PER_S: round(frames_done / max(elapsed, 1e-9), 1),
             m.UPDATES_PER_S: round(self.core.updates / max(elapsed, 1e-9), 2),
             m.EPSILON_MEAN: float(np.mean(self.agent.epsilons(0, self.cfg.envs_per_actor, self.core.frames))),
