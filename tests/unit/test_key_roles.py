@@ -37,6 +37,7 @@ def keys(tmp_path):
 class Peer:
     def __init__(self, ctx, endpoint: str, role: str, keys, name: str):
         self.sock = open_channel(ctx, "control", "connect", endpoint, Security(str(keys), client_name=name))
+        self.sock.setsockopt(zmq.SNDTIMEO, 2000)  # a refused key never gets a pipe: a send must not hang
         self.role = role
 
     def send(self, msg_type: str, fields: dict) -> None:
@@ -147,7 +148,10 @@ def test_a_revoked_key_gets_nothing_without_a_restart_of_the_learner(learner, ke
     assert [i.stopped for i in server.registry.roles.values() if i.role == "actor"].count(True) == 1
     # A new connection with the revoked key completes no handshake: no reply on control, no weights.
     again = peer("actor", "nodeB")
-    again.hello()
+    try:
+        again.hello()
+    except zmq.Again:
+        pass  # no handshake, so no pipe to queue the hello on: refused before a byte reaches the server
     pump()
     assert again.reply(500) is None
     weights = open_channel(ctx, "weights", "bind", endpoints.weights, security)  # the learner's authenticator
