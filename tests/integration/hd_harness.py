@@ -16,6 +16,7 @@ from typing import Any, Callable, Iterable
 
 import psutil
 import pytest
+import zmq
 
 from higher_dist.launch.topology import free_base_port
 from higher_dist.rundir import read_metrics
@@ -331,3 +332,13 @@ def learner_pid(launcher: Proc) -> int | None:
     except psutil.Error:
         return None
     return None
+
+
+def push_socket(ctx, endpoint: str):
+    """A PUSH socket that plays a hostile peer: a receiver that stopped reading fails the test, not hangs it."""
+    sock = ctx.socket(zmq.PUSH)
+    sock.setsockopt(zmq.SNDHWM, 1000)
+    sock.setsockopt(zmq.SNDTIMEO, 60_000)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(endpoint)
+    return sock

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import zmq
 
-from hd_harness import Proc, RunWatch, entry
+from hd_harness import Proc, RunWatch, entry, push_socket
 from higher_dist.config_presets import make_config
 from higher_dist.launch.topology import Endpoints, free_base_port
 from higher_dist.learning.episode import TIMEOUT
@@ -27,15 +27,6 @@ LEVEL = "BabyAI-PickupDist-v0"
 MESSAGES = 2_000
 SETTINGS = {"replay.min_size": 300, "replay.samples_per_insert": 1, "dqn.batch_size": 32, "dqn.compile": "false",
             "network.conv_channels": "[16]", "stats_every_s": 0.5, "checkpoint_every_s": 600}
-
-
-def _push(ctx: zmq.Context, endpoint: str) -> zmq.Socket:
-    sock = ctx.socket(zmq.PUSH)
-    sock.setsockopt(zmq.SNDHWM, 1000)
-    sock.setsockopt(zmq.SNDTIMEO, 60_000)  # a receiver that stopped reading fails the test, not hangs it
-    sock.setsockopt(zmq.LINGER, 0)
-    sock.connect(endpoint)
-    return sock
 
 
 def test_wrong_messages_on_a_level_kill_nothing_and_lose_nothing(tmp_path):
@@ -56,7 +47,7 @@ def test_wrong_messages_on_a_level_kill_nothing_and_lose_nothing(tmp_path):
         watch.wait_for("the relabeler registered",
                        lambda r: any(row["role"] == "relabeler" and row["state"] == "alive" for row in r["roles"]),
                        timeout=180)
-        to_learner, to_relabeler = _push(ctx, endpoints.experience), _push(ctx, endpoints.episodes)
+        to_learner, to_relabeler = push_socket(ctx, endpoints.experience), push_socket(ctx, endpoints.episodes)
         rng = np.random.default_rng(12)
         pool = real_episodes(cfg.world, 300, seed=3)
         fetchattr = real_episodes(make_config("her", "paper").world, 60, seed=3)

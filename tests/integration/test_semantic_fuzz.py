@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import zmq
 
-from hd_harness import Proc, RunWatch, entry
+from hd_harness import Proc, RunWatch, entry, push_socket
 from higher_dist.config_presets import make_config
 from higher_dist.launch.topology import Endpoints, free_base_port
 from higher_dist.learning.samples import real_episodes
@@ -40,15 +40,6 @@ def _flags() -> list[str]:
     return flags
 
 
-def _push(ctx: zmq.Context, endpoint: str) -> zmq.Socket:
-    sock = ctx.socket(zmq.PUSH)
-    sock.setsockopt(zmq.SNDHWM, 1000)
-    sock.setsockopt(zmq.SNDTIMEO, 60_000)  # a receiver that stopped reading fails the test, not hangs it
-    sock.setsockopt(zmq.LINGER, 0)
-    sock.connect(endpoint)
-    return sock
-
-
 def test_ten_thousand_wrong_messages_kill_nothing_and_lose_nothing(tmp_path):
     cfg = make_config("her", "small", actors=1)
     spec = WorldSpec.of(cfg.world)
@@ -64,7 +55,7 @@ def test_ten_thousand_wrong_messages_kill_nothing_and_lose_nothing(tmp_path):
         watch.wait_for("the relabeler registered",
                        lambda r: any(row["role"] == "relabeler" and row["state"] == "alive" for row in r["roles"]),
                        timeout=120)
-        to_learner, to_relabeler = _push(ctx, endpoints.experience), _push(ctx, endpoints.episodes)
+        to_learner, to_relabeler = push_socket(ctx, endpoints.experience), push_socket(ctx, endpoints.episodes)
         rng = np.random.default_rng(12)
         pools = Pools.of(real_episodes(cfg.world, 600, seed=3))
         kinds = sorted(k for k in MUTATIONS if k != "huge_batch")
