@@ -29,7 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from higher_dist.world import babyai_language as lang
-from higher_dist.world.grid import StepResult
+from higher_dist.world.grid import StepResult, check_actions
 from higher_dist.world.babyai_levels import LevelFacts, _quiet, is_pickup_level, level_facts, pickup_levels  # noqa: F401
 from higher_dist.world.spec import BABYAI_ACTION_NAMES, BABYAI_CHANNEL_VALUES, RUNNING, SUCCESS, TIMEOUT
 
@@ -163,15 +163,7 @@ class BatchedBabyAI:
     # ------------------------------------------------------------------------------------ stepping
 
     def _check_actions(self, actions) -> np.ndarray:
-        a = np.asarray(actions)
-        if a.dtype.kind not in "iu":
-            raise ValueError(f"actions: must be integers, got dtype {a.dtype}")
-        if a.shape != (self.batch_size,):
-            raise ValueError(f"actions: must have shape ({self.batch_size},), got {a.shape}")
-        if a.min() < 0 or a.max() >= N_BABYAI_ACTIONS:
-            raise ValueError(f"actions: must be in 0..{N_BABYAI_ACTIONS - 1} "
-                             f"({', '.join(BABYAI_ACTION_NAMES)}), got values {np.unique(a).tolist()}")
-        return a
+        return check_actions(actions, self.batch_size, BABYAI_ACTION_NAMES)
 
     @staticmethod
     def _pick_attrs(env) -> tuple[int, int, int, int]:

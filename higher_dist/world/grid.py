@@ -32,7 +32,7 @@ from higher_dist.config import WorldConfig
 from higher_dist.world import language
 from higher_dist.world.objects import ObjectSpace
 from higher_dist.world.spec import (  # noqa: F401  (the encodings, re-exported for the world's users)
-    ACTION_FORWARD, ACTION_LEFT, ACTION_PICK, ACTION_RIGHT, KIND_BALL, KIND_EMPTY, KIND_KEY, KIND_UNSEEN,
+    ACTION_FORWARD, ACTION_LEFT, ACTION_NAMES, ACTION_PICK, ACTION_RIGHT, KIND_BALL, KIND_EMPTY, KIND_KEY, KIND_UNSEEN,
     KIND_WALL, N_ACTIONS, RUNNING, SUCCESS, TIMEOUT, WRONG_PICK,
 )
 
@@ -41,6 +41,19 @@ _EMPTY_CELL = KIND_EMPTY
 _WALL_CELL = KIND_WALL
 DIRECTION_VECTORS = np.array([(-1, 0), (0, 1), (1, 0), (0, -1)])  # (drow, dcol): up, right, down, left
 _TURN = np.array([-1, 1, 0, 0])  # direction change per action
+
+
+def check_actions(actions, batch_size: int, action_names: tuple[str, ...]) -> np.ndarray:
+    """One integer action per env of a batched world, each one of `action_names`; else ValueError."""
+    a = np.asarray(actions)
+    if a.dtype.kind not in "iu":
+        raise ValueError(f"actions: must be integers, got dtype {a.dtype}")
+    if a.shape != (batch_size,):
+        raise ValueError(f"actions: must have shape ({batch_size},), got {a.shape}")
+    if a.min() < 0 or a.max() >= len(action_names):
+        raise ValueError(f"actions: must be in 0..{len(action_names) - 1} ({', '.join(action_names)}), "
+                         f"got values {np.unique(a).tolist()}")
+    return a
 
 
 def object_cells(attrs) -> np.ndarray:
@@ -263,15 +276,7 @@ class BatchedFetchAttr:
     # ------------------------------------------------------------------------------------ stepping
 
     def _check_actions(self, actions) -> np.ndarray:
-        a = np.asarray(actions)
-        if a.dtype.kind not in "iu":
-            raise ValueError(f"actions: must be integers, got dtype {a.dtype}")
-        if a.shape != (self.batch_size,):
-            raise ValueError(f"actions: must have shape ({self.batch_size},), got {a.shape}")
-        if a.min() < 0 or a.max() >= N_ACTIONS:
-            raise ValueError(f"actions: must be in 0..{N_ACTIONS - 1} (left, right, forward, pick), "
-                             f"got values {np.unique(a).tolist()}")
-        return a.astype(np.int64, copy=False)
+        return check_actions(actions, self.batch_size, ACTION_NAMES).astype(np.int64, copy=False)
 
     def step(self, actions) -> StepResult:
         """Apply one action per env; finished envs start a new episode in place (see StepResult)."""
