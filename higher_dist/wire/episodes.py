@@ -195,12 +195,9 @@ def _episode_faults(a: dict, spec: WorldSpec, allow_relabelled: bool, n_actors: 
         expected = np.where(won, spec.pick_reward(lengths), 0.0)
     flag(np.abs(final - expected) > 1e-5, "reward")
     # The picked object sits in the cell in front of the agent on the frame before the pick.
-    front = at(frames, frame_starts + np.clip(pick_step, 0, lengths - 1))[:, spec.view_size - 2, spec.view_size // 2].astype(np.int64)
-    if babyai:
-        front_ok = (front[:, 1] == picked[:, 0]) & (front[:, 0] - spec.first_object_kind == picked[:, 1])
-    else:
-        front_ok = (np.stack([front[:, 1] - 1, front[:, 0] - KIND_KEY, front[:, 2] - 1, front[:, 3] - 1], axis=1)
-                    == picked).all(axis=1)
+    front = spec.front_object(at(frames, frame_starts + np.clip(pick_step, 0, lengths - 1)))
+    columns = spec.picked_columns  # BabyAI's picked object holds colour and type, then location and article
+    front_ok = (front[:, :columns] == picked[:, :columns]).all(axis=1)
     flag(picks & ~front_ok, "picked_not_in_front")
     if not allow_relabelled:
         flag(relabelled, "relabel_origin")
