@@ -20,6 +20,7 @@ from higher_dist.learning.episode import SUCCESS, WRONG_PICK, Episode
 from higher_dist.rundir import RunDir
 from higher_dist.wire import codec
 from higher_dist.wire.episodes import pack_episodes
+from higher_dist.wire.schema import PROTOCOL_VERSION
 from higher_dist.world.language import MISSION_LEN
 
 pytestmark = pytest.mark.slow
@@ -101,7 +102,7 @@ def _set(name, index, value):
 
 
 def _control_garbage(rng) -> list[list[bytes]]:
-    hello = codec.encode("hello", {"role": "actor", "host": "x", "pid": 1, "protocol": 1})
+    hello = codec.encode("hello", {"role": "actor", "host": "x", "pid": 1, "protocol": PROTOCOL_VERSION})
     header = msgpack.unpackb(hello[0], raw=False)
     header["v"] = 99
     heartbeat = codec.encode("heartbeat", {"role": "actor", "id": 5, "state": "running", "counters": {}})
@@ -124,7 +125,7 @@ def _experience_garbage(rng) -> list[list[bytes]]:
     return [
         [rng.bytes(1000)],
         truncated,
-        _episodes_message(version=2),
+        _episodes_message(version=PROTOCOL_VERSION + 1),  # a peer of another version
         _episodes_message(tamper=_set("actions", 0, 9)),  # out-of-range action
         _episodes_message(tamper=_set("rewards", 1, np.nan)),
         _episodes_message(tamper=_set("frames", (0, 0, 0, 0), 200)),  # view channel out of range
