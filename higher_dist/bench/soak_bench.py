@@ -1,27 +1,34 @@
 """`higher-bench soak --minutes M`: does any role's memory grow? A paper-world cluster run for M minutes.
 
-Starts `higher-cluster` (the `higher` preset on the paper world by default), samples the resident set
-size (RSS) of every role process every `--sample-every` seconds, and reports per role the growth in
+Starts `higher-cluster` (the `higher` preset on the paper world by default) and a `higher-dashboard`
+attached to it on a pseudo-terminal of its own (so it draws as it would for a user), samples the
+resident set size (RSS) of every process (the launcher, the dashboard and each role) every
+`--sample-every` seconds, and reports per role the growth in
 MiB/hour after a warm-up (the least-squares slope of RSS over time, so one noisy sample does not decide
 it), with a verdict against the target (< 5 MiB/h). A restarted role is followed under its role name
 (its RSS restarts too, which the report flags). The learner's last metrics record comes with the report,
-so a soak is also a learning run. Prints a table and writes JSON (`--out`).
+so a soak is also a learning run. Prints a table and writes JSON (`--out`). `--trace-memory` also has
+every process write its tracemalloc growth to RUN/memtrace/ (launch/memory.py).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import pty
 import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import psutil
 
-from higher_dist.launch.topology import free_base_port
+from higher_dist.launch.memory import TRACE_DIR_ENV, TRACE_EVERY_ENV, TRACE_WARMUP_ENV, role_env
+from higher_dist.launch.topology import Endpoints, free_base_port
 from higher_dist.rundir import read_metrics
 
 TARGET_MIB_PER_H = 5.0
@@ -59,14 +66,44 @@ def growth_mib_per_h(times_s: list[float], rss_mib: list[float]) -> float | None
     return float(np.polyfit(t, np.asarray(rss_mib), 1)[0])
 
 
+def _cli(command: str, *args: str) -> list[str]:
+    return [sys.executable, "-c", f"import sys; from higher_dist.cli import {command}_main as m; sys.exit(m())", *args]
+
+
+def _dashboard_on_a_terminal(control: str, env: dict[str, str]) -> subprocess.Popen:
+    """`higher-dashboard` drawing to a pseudo-terminal whose output is read and thrown away."""
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(_cli("dashboard", "--learner", control), stdin=slave, stdout=slave, stderr=slave,
+                            env=dict(env, COLUMNS="100", LINES="40", TERM="xterm-256color"), start_new_session=True)
+    os.close(slave)
+
+    def drain():
+        try:
+            while os.read(master, 65536):
+                pass
+        except OSError:
+            pass  # the dashboard closed its end
+        finally:
+            os.close(master)
+
+    threading.Thread(target=drain, daemon=True).start()
+    return proc
+
+
 def soak(minutes: float, sample_every_s: float, warmup_minutes: float, preset: str, world: str,
-         extra: list[str], run_dir: Path) -> dict:
+         extra: list[str], run_dir: Path, trace_memory: bool = False) -> dict:
+    port_base = free_base_port()
     args = ["--preset", preset, "--world", world, "--frames", str(10**10), "--no-dashboard",
-            "--run-dir", str(run_dir), "--port-base", str(free_base_port()), *extra]
-    cmd = [sys.executable, "-c", "import sys; from higher_dist.cli import cluster_main as m; sys.exit(m())", *args]
+            "--run-dir", str(run_dir), "--port-base", str(port_base), *extra]
+    env = role_env()
+    if trace_memory:
+        env.update({TRACE_DIR_ENV: str(run_dir / "memtrace"), TRACE_WARMUP_ENV: str(warmup_minutes * 60),
+                    TRACE_EVERY_ENV: str(max(sample_every_s, min(300.0, minutes * 60 / 10)))})
     log = open(run_dir.parent / f"{run_dir.name}-launcher.log", "wb")
-    launcher = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    samples: dict[str, list[tuple[float, float, int]]] = {}  # role -> [(t, rss MiB, pid)]
+    launcher = subprocess.Popen(_cli("cluster", *args), stdout=log, stderr=subprocess.STDOUT,
+                                start_new_session=True, env=env)
+    dashboard = None
+    samples: dict[str, list[tuple[float, float, int]]] = {}  # process -> [(t, rss MiB, pid)]
     start = time.monotonic()
     try:
         root = psutil.Process(launcher.pid)
@@ -75,8 +112,13 @@ def soak(minutes: float, sample_every_s: float, warmup_minutes: float, preset: s
             if launcher.poll() is not None:
                 raise RuntimeError(f"the cluster exited with code {launcher.returncode}; see {run_dir}/logs")
             now = time.monotonic()
+            if dashboard is None and now - start > 5:  # once the learner has bound its sockets
+                dashboard = _dashboard_on_a_terminal(Endpoints.from_base("127.0.0.1", port_base).control, env)
             if now >= next_sample:
-                for role, proc in roles_of(root).items():
+                procs = dict(roles_of(root), launcher=root)
+                if dashboard is not None and dashboard.poll() is None:
+                    procs["dashboard"] = psutil.Process(dashboard.pid)
+                for role, proc in procs.items():
                     try:
                         rss = proc.memory_info().rss / 2**20
                     except psutil.Error:
@@ -85,6 +127,8 @@ def soak(minutes: float, sample_every_s: float, warmup_minutes: float, preset: s
                 next_sample += sample_every_s
             time.sleep(min(1.0, max(0.0, next_sample - time.monotonic())))
     finally:
+        if dashboard is not None and dashboard.poll() is None:
+            dashboard.terminate()
         if launcher.poll() is None:
             launcher.send_signal(signal.SIGINT)
             try:
@@ -112,6 +156,8 @@ def soak(minutes: float, sample_every_s: float, warmup_minutes: float, preset: s
                 "success_rate_train", "relabel_dataset_size", "relabel_gate_open", "generator_val_accuracy",
                 "relabel_accuracy", "rejected_messages")
         report["last_metrics"] = {k: last.get(k) for k in keys}
+    if trace_memory:
+        report["memtrace_dir"] = str(run_dir / "memtrace")
     return report
 
 
@@ -125,13 +171,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--world", default="paper")
     p.add_argument("--run-dir", default=None, help="where the cluster's run goes (default: a temp folder)")
     p.add_argument("--out", default=None, help="also write the report as JSON here")
+    p.add_argument("--trace-memory", action="store_true",
+                   help="every process writes its tracemalloc growth to RUN/memtrace/ every 5 minutes")
     args, extra = p.parse_known_args(argv)
     if args.minutes <= 0 or args.sample_every <= 0:
         p.error("--minutes and --sample-every must be > 0")
     warmup = args.warmup_minutes if args.warmup_minutes is not None else min(10.0, args.minutes / 3)
     run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="higher-soak-")) / "run"
     run_dir.parent.mkdir(parents=True, exist_ok=True)
-    report = soak(args.minutes, args.sample_every, warmup, args.preset, args.world, extra, run_dir)
+    report = soak(args.minutes, args.sample_every, warmup, args.preset, args.world, extra, run_dir,
+                  trace_memory=args.trace_memory)
     print(f"soak: {args.preset} on the {args.world} world, {args.minutes:g} min, RSS every {args.sample_every:g} s, "
           f"growth after {warmup:g} min of warm-up (target < {TARGET_MIB_PER_H:g} MiB/h)")
     print(f"{'role':<12}{'start MiB':>10}{'warm MiB':>10}{'end MiB':>10}{'MiB/h':>9}  verdict")

@@ -20,6 +20,7 @@ from pathlib import Path
 from higher_dist.config import Config
 from higher_dist.launch.channels import check_binds
 from higher_dist.launch.layout import Layout, available_cores, plan_layout
+from higher_dist.launch.memory import role_env
 from higher_dist.launch.parent import LAUNCHER_PID_ENV
 from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, check_free, claim_ports, parse_endpoint
 from higher_dist.rundir import RunDir, last_record
@@ -42,7 +43,7 @@ class RoleProcess:
     def start(self, extra_env: dict[str, str] | None = None, log_to_file: bool = True) -> None:
         # PYTHONFAULTHANDLER: a role killed by a signal (a segfault in a native library) leaves its
         # Python stack in its log, where the supervisor's "exited with code -11" alone says nothing.
-        env = dict(os.environ, HIGHER_RESTARTS=str(self.restarts), PYTHONFAULTHANDLER="1",
+        env = dict(role_env(), HIGHER_RESTARTS=str(self.restarts), PYTHONFAULTHANDLER="1",
                    **{LAUNCHER_PID_ENV: str(os.getpid())}, **(extra_env or {}))
         out = open(self.log_path, "ab") if log_to_file else None
         self.proc = subprocess.Popen(self.argv, stdout=out, stderr=subprocess.STDOUT if out else None, env=env)
