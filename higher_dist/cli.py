@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Callable
 
 from higher_dist.config import ConfigError, from_dict
-from higher_dist.launch.memory import trace_from_env
+from higher_dist.launch.memory import bound_arenas, trace_from_env
 from higher_dist.launch.parent import follow_launcher
 from higher_dist.config_flags import (DefaultsHelp, add_config_flags, config_from_args, non_negative_int,
                                      positive_int, resumed_config)
@@ -59,6 +59,7 @@ def _security(args: argparse.Namespace, role: str = "client"):
 
 def _run(prog: str, build: Callable[[], int]) -> int:
     follow_launcher()  # a role started by higher-cluster ends when the launcher does
+    bound_arenas()  # before torch and ZeroMQ start threads: see launch/memory.py
     trace_from_env(prog)  # only when HIGHER_MEMTRACE_DIR is set (higher-bench soak --trace-memory)
     try:
         return build()

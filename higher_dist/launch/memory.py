@@ -4,7 +4,9 @@ what Python allocates, for hunting growth in a long run (`higher-bench soak --tr
 The allocator: glibc gives each thread that allocates its own arena (up to 8 per core), and the roles
 have several threads (torch's, ZeroMQ's I/O threads, the learner's batch prefetch). Memory freed in one
 arena is not reused by another, so a long run's resident size creeps up with no Python object behind it.
-`MALLOC_ARENA_MAX=2` bounds that; a user's own setting is kept.
+Every process started through the CLI bounds the arenas to 2 at its start (`mallopt`, before torch or
+ZeroMQ start threads), whoever launched it (higher-cluster, Slurm, systemd); the launcher also passes
+`MALLOC_ARENA_MAX=2` to its children. A user's own MALLOC_ARENA_MAX is kept.
 
 The trace: with HIGHER_MEMTRACE_DIR set, a process started through the CLI starts a daemon thread that
 waits HIGHER_MEMTRACE_WARMUP_S seconds (default 600), starts tracemalloc (so the imports and the warm-up,
@@ -15,6 +17,8 @@ allocator's own overhead: resident growth with a flat traced total points below 
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
 import threading
 import time
@@ -34,6 +38,20 @@ def role_env(base: dict[str, str] | None = None) -> dict[str, str]:
     for key, value in ALLOCATOR_ENV.items():
         env.setdefault(key, value)
     return env
+
+
+_M_ARENA_MAX = -8  # glibc's mallopt parameter number
+
+
+def bound_arenas() -> bool:
+    """Bound this process's malloc arenas (glibc only); False where it was not done."""
+    if "MALLOC_ARENA_MAX" in os.environ:
+        return False  # the user's choice, already read by glibc at start
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.mallopt(_M_ARENA_MAX, int(ALLOCATOR_ENV["MALLOC_ARENA_MAX"])))
+    except (OSError, AttributeError):
+        return False  # not glibc
 
 
 def _rss_mib() -> float:

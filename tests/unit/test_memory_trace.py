@@ -13,6 +13,14 @@ def test_roles_get_the_bounded_arenas_unless_the_user_chose():
     assert role_env({"PATH": "/bin"})["PATH"] == "/bin"
 
 
+def test_arenas_are_bounded_by_mallopt_unless_the_user_set_them():
+    code = "from higher_dist.launch.memory import bound_arenas; print(bound_arenas())"
+    run = lambda env: subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,  # noqa: E731
+                                     text=True, timeout=60).stdout.strip()
+    assert run({"PATH": "/usr/bin:/bin"}) == "True"  # glibc: this machine's libc
+    assert run({"PATH": "/usr/bin:/bin", "MALLOC_ARENA_MAX": "4"}) == "False"
+
+
 def test_the_trace_names_the_line_that_grows(tmp_path):
     import tracemalloc
 
