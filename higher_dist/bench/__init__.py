@@ -13,7 +13,7 @@ import sys
 COMMANDS: dict[str, str] = {
     "world": "world_bench", "learner": "learner_bench", "wire": "wire_bench",
     "generator": "generator_bench", "cluster": "cluster_bench", "soak": "soak_bench", "all": "run_all",
-    "time-to-success": "time_to_success_bench", "gpu": "gpu_bench",
+    "time-to-success": "time_to_success_bench", "gpu": "gpu_bench", "checkpoint": "checkpoint_bench",
 }
 
 

@@ -17,6 +17,8 @@ PLAN = [
     ("learner", ["learner"], [("learner updates/s, B=64", "b64_updates_per_s", None),
                               ("learner samples/s, B=64", "b64_samples_per_s", None),
                               ("learner samples/s, B=256", "b256_samples_per_s", 25_000)]),
+    ("checkpoint", ["checkpoint"], [("checkpoint MiB, full replay", "size_mib", None),
+                                    ("checkpoint pause s", "pause_s", None)]),
     ("wire", ["wire"], [("wire episodes/s, PUSH/PULL", "pushpull_episodes_per_s", None)]),
     ("generator", ["generator", "--pairs", "5000"], [("generator seen exact match", "seen_exact_match", 0.9),
                                                      ("generator unseen exact match", "unseen_exact_match", 0.8)]),

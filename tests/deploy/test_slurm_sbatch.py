@@ -227,6 +227,9 @@ def test_sbatch_runs_across_two_nodes_survives_a_requeue_and_finishes(slurm, tmp
     deadline = time.monotonic() + 60
     while slurm.job(job_id).get("JobState") != "PENDING" and time.monotonic() < deadline:
         time.sleep(0.5)
+    # slurmd refuses a credential made in the same second as the old one's revocation (its clock is in
+    # seconds): a start forced at once may be killed as "credential revoked". A second and a half apart.
+    time.sleep(1.5)
     slurm.run("scontrol", "update", f"JobId={job_id}", "StartTime=now")  # not the requeue's default delay
     info = slurm.wait_job(job_id, timeout=420)
     output = log.read_text(errors="replace")
@@ -244,7 +247,14 @@ def test_sbatch_runs_across_two_nodes_survives_a_requeue_and_finishes(slurm, tmp
     assert records[-1]["frames"] >= FRAMES > at_requeue
     seen = {row["id"] for r in records for row in r["roles"] if row["role"] == "actor"}
     assert seen == {0, 1}, seen  # one actor per node, numbered within the learner's --actors 2
-    assert stat.S_IMODE((run / "keys" / "server.key_secret").stat().st_mode) == 0o600
+    keys = run / "keys"
+    assert stat.S_IMODE((keys / "server.key_secret").stat().st_mode) == 0o600
+    # One pair for the relabeler and one per node, each allowed its role only; no shared pair.
+    pairs = sorted(p.name for p in keys.glob("*.key_secret"))
+    assert pairs == ["actor-hdn1.key_secret", "actor-hdn2.key_secret", "relabeler.key_secret",
+                     "server.key_secret"], pairs
+    for name, role in (("actor-hdn1", "actor"), ("actor-hdn2", "actor"), ("relabeler", "relabeler")):
+        assert f'roles = "{role}"' in (keys / "allowed_clients" / f"{name}.key").read_text(), name
 
     # Requeued once more after it finished: nothing left to do, and it says so.
     assert slurm.run("scontrol", "requeue", job_id).returncode == 0

@@ -76,3 +76,13 @@ def test_gpu_bench_refuses_a_host_without_cuda_and_measures_the_cpu_path_when_al
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert last["device"] == "cpu" and last["layout"]["learner_device"] == "cpu"
     assert last["learner"]["eager b8"]["samples_per_s"] > 0 and "cluster" not in last
+
+
+def test_checkpoint_bench_writes_a_real_checkpoint_of_a_full_replay(capsys, tmp_path):
+    assert main(["checkpoint", "--capacity", "10000", "--repeat", "1", "--dir", str(tmp_path)]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert last["capacity"] == 10_000 and 9_000 <= last["transitions"] <= 10_000  # full: a slot per frame, one more frame than steps per episode
+    # The replay is most of the checkpoint: 7x7x4 bytes per frame slot, far above the networks alone.
+    assert last["size_mib"] > 10_000 * 196 / 2**20 > last["size_without_replay_mib"]
+    assert last["pause_s"] >= last["write_s"] > 0 and last["resume_load_s"] > 0
+    assert list(tmp_path.iterdir()) == []  # its temp folder is removed
