@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 TORCH_VERSION ?= 2.13.0
 
-.PHONY: install test test-fast test-deploy netns-tools slurm-tools cluster bench bench-time bench-gpu reproduce docs lint clean
+.PHONY: install test test-fast test-deploy netns-tools slurm-tools systemd-tools cluster bench bench-time bench-gpu reproduce docs lint clean
 
 # `make reproduce -- --dry-run --seeds 2 main`: the words after `reproduce` are higher-reproduce's
 # arguments (write `--seeds 2`, not `--seeds=2`: make takes NAME=VALUE words as its own variables).
@@ -44,14 +44,19 @@ netns-tools:
 	  echo "iproute2 is not installed: the multi-host test will skip"
 
 # deploy/slurm/higher.sbatch on a real Slurm (slurmctld + two slurmd in network namespaces, started by
-# the test). Needs root; installs Debian's slurm-wlm and munge where they are missing.
-test-deploy: install netns-tools slurm-tools
+# the test) and deploy/systemd under a real systemd (PID 1 of namespaces the test makes). Needs root;
+# installs Debian's slurm-wlm, munge and systemd where they are missing.
+test-deploy: install netns-tools slurm-tools systemd-tools
 	$(BIN)/python -m pytest tests/deploy -v
 
 slurm-tools:
 	@command -v slurmctld >/dev/null 2>&1 && command -v munged >/dev/null 2>&1 || { \
 	  apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends \
 	    slurm-wlm munge; }
+
+systemd-tools:
+	@test -x /lib/systemd/systemd && command -v systemd-analyze >/dev/null 2>&1 || { \
+	  apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends systemd; }
 
 test-fast: install
 	$(BIN)/python -m pytest tests/unit
