@@ -97,8 +97,10 @@ def configuration_md() -> str:
              "Every field of a run's config, by the dotted path that `--set FIELD=VALUE` takes (values are JSON; "
              "a bare word is a string), e.g. `higher-cluster --set dqn.lr=0.001 --set network.fusion=concat`. "
              "`default` is the dataclass default; a preset (`--preset`), a world (`--world`) or a profile "
-             "(`--profile`) changes some fields, listed under *set by*, before `--set` applies. Why each "
-             "default was chosen: [decisions.md](decisions.md).", ""]
+             "(`--profile`) changes some fields, listed under *set by*, before `--set` applies. "
+             "`--print-config` (on `higher-cluster`, `higher-learner`, `higher-run` and `higher-reproduce`) "
+             "prints the config those flags resolve to, as JSON, and exits. Why each default was chosen: "
+             "[decisions.md](decisions.md).", ""]
     section = None
     for path, owner, f in _leaves(base):
         group = path.split(".")[0] if "." in path else "run"

@@ -3,6 +3,7 @@ write results.md. `make reproduce -- --dry-run` prints the plan and its estimate
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import sys
@@ -48,6 +49,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--generator-steps", type=positive_int, default=plan_mod.GENERATOR_STEPS,
                    help="Adam steps per generator run")
     p.add_argument("--dry-run", action="store_true", help="print the plan and its estimated cost; run nothing")
+    p.add_argument("--print-config", action="store_true",
+                   help="print the resolved config of every cluster run of the plan as JSON (run name -> config) "
+                        "and exit")
     p.add_argument("--report", action="store_true", help="only draw the figures and write results.md from --out")
     p.add_argument("--no-report", action="store_true", help="do not draw figures and results.md at the end")
     return p
@@ -82,6 +86,9 @@ def _main(args: argparse.Namespace, argv: list[str]) -> int:
         command=["higher-reproduce", *argv])
     configs = plan_mod.check_configs(plan)
     spis = {name: cfg.replay.samples_per_insert for name, cfg in configs.items()}
+    if args.print_config:
+        print(json.dumps({name: cfg.to_dict() for name, cfg in configs.items()}, indent=2))
+        return 0
     if args.dry_run:
         print_plan(plan, spis, parallel)
         return 0

@@ -220,3 +220,17 @@ def test_dqn_near_random_is_judged_per_seed(tmp_path):
         assert row["verdict"] == verdict, (finals, row)
         if verdict == "mixed":
             assert "seeds disagree" in row["why"] and f"{100 * (rnd + 0.08):.1f}%" in row["why"]
+
+
+def test_print_config_prints_every_cluster_run_resolved_and_writes_nothing(tmp_path, capsys):
+    from higher_dist.reproduce.cli import main as reproduce_main
+
+    out = tmp_path / "plan"
+    assert reproduce_main(["main", "--seeds", "2", "--frames", "100000", "--set", "dqn.lr=0.0007",
+                           "--print-config", "--out", str(out)]) == 0
+    configs = json.loads(capsys.readouterr().out)
+    assert set(configs) == {f"{m}-s{s}" for m in ("dqn", "her", "higher", "reward") for s in (0, 1)}
+    assert {c["seed"] for c in configs.values()} == {0, 1}
+    assert all(c["frames"] == 100_000 and c["dqn"]["lr"] == 0.0007 for c in configs.values())
+    assert configs["higher-s1"]["relabel"]["strategy"] == "learned" and configs["her-s0"]["relabel"]["strategy"] == "expert"
+    assert not out.exists()  # nothing written, nothing run
