@@ -29,6 +29,7 @@ from higher_dist.world.spec import SUCCESS
 log = logging.getLogger("higher.actor")
 SEND_EVERY_S = 0.25  # a batch leaves at least this often, full or not
 WAIT_MS = 20  # longest wait for room on the episodes socket before looking at control again
+FIRST_WEIGHTS_WAIT_MS = 100  # a wait for the first weights, between looks at the control channel
 
 
 def run_actor(learner: str, actor_id: int | None = None, security: Security | None = None,
@@ -52,8 +53,12 @@ def run_actor(learner: str, actor_id: int | None = None, security: Security | No
     eps = agent.epsilons(idx, collector.n_envs, 0)
     try:
         while not stop and not client.poll():
-            # Newest weights, if any, without waiting (an invalid frame is counted and dropped).
-            msg = sockets.recv_message(weights_sub, 0, client.rejects, "weights")
+            # Newest weights, if any, without waiting (an invalid frame is counted and dropped). Until the
+            # first arrive (the learner publishes at start and every 2 s), wait for them instead of acting:
+            # they carry the learner's frames, the exploration clock, so a resumed run does not explore at
+            # the epsilon of frame 0 with an untrained network.
+            msg = sockets.recv_message(weights_sub, 0 if version >= 0 else FIRST_WEIGHTS_WAIT_MS, client.rejects,
+                                       "weights")
             if msg is not None:
                 try:
                     new_version, arrays = codec.weights_of(msg, expected)
@@ -64,6 +69,9 @@ def run_actor(learner: str, actor_id: int | None = None, security: Security | No
                     if new_version != version:
                         policy.load(arrays)
                         version = collector.weights_version = new_version
+            if version < 0:
+                client.heartbeat({"frames": frames, "weights_version": version})
+                continue
             if not out.flush(WAIT_MS):
                 client.heartbeat({"frames": frames, "weights_version": version})
                 continue

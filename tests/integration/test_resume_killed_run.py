@@ -109,6 +109,9 @@ def test_a_killed_run_resumes_as_its_checkpoint_and_its_curve_does_not_dip(tmp_p
                        lambda r: len([f for f, _ in _evaluations(watch.records()) if f > counters["frames"]]) >= 2,
                        timeout=300, after=n)
         after = [s for f, s in _evaluations(watch.records()) if f > counters["frames"]][:2]
+        # Not even for a moment at the epsilon of frame 0: every record of the resumed run says so.
+        resumed_eps = [r["epsilon_mean"] for r in watch.records()[n:] if r.get("epsilon_mean") is not None]
+        assert resumed_eps and max(resumed_eps) <= eps_before + 0.01, (max(resumed_eps), eps_before)
         level = float(np.mean([s for _, s in evals_before[-2:]]))
         assert min(after) >= level - 0.25 and min(after) >= chance + 0.15, (evals_before[-3:], after, chance)
         resumed.send(signal.SIGINT)
