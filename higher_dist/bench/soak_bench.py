@@ -1,14 +1,16 @@
 """`higher-bench soak --minutes M`: does any role's memory grow? A paper-world cluster run for M minutes.
 
 Starts `higher-cluster` (the `higher` preset on the paper world by default) and a `higher-dashboard`
-attached to it on a pseudo-terminal of its own (so it draws as it would for a user), samples the
+attached to it on a pseudo-terminal of its own (so it draws as it would for a user), and samples the
 resident set size (RSS) of every process (the launcher, the dashboard and each role) every
-`--sample-every` seconds, and reports per role the growth in
-MiB/hour after a warm-up (the least-squares slope of RSS over time, so one noisy sample does not decide
-it), with a verdict against the target (< 5 MiB/h). A restarted role is followed under its role name
-(its RSS restarts too, which the report flags). The learner's last metrics record comes with the report,
-so a soak is also a learning run. Prints a table and writes JSON (`--out`). `--trace-memory` also has
-every process write its tracemalloc growth to RUN/memtrace/ (launch/memory.py).
+`--sample-every` seconds. Per process it reports the growth in MiB/hour (the least-squares slope of RSS
+over time, so one noisy sample does not decide it) three ways: after the warm-up, once the run's
+fixed-capacity stores are full (the replay, the generator's dataset, which take memory as they fill:
+`stores_full_s`), and over the last hour; the verdict against the target (< 5 MiB/h) is the first. A
+restarted role is followed under its role name (its RSS restarts too, which the report flags). The
+learner's last metrics record comes with the report, so a soak is also a learning run. Prints a table
+and writes JSON (`--out`). `--trace-memory` also has every process write its tracemalloc growth to
+RUN/memtrace/ (launch/memory.py).
 """
 from __future__ import annotations
 
@@ -90,6 +92,23 @@ def _dashboard_on_a_terminal(control: str, env: dict[str, str]) -> subprocess.Po
     return proc
 
 
+def stores_full_s(records: list[dict], run_dir: Path) -> float | None:
+    """Seconds into the run when its fixed-capacity stores were full: the replay at 95% of its capacity
+    (whole episodes leave a gap) and, where the run learns a generator, its dataset at capacity. Those
+    stores are allocated up front but take memory as they fill, so growth before this is expected."""
+    try:
+        cfg = json.loads((run_dir / "config.json").read_text())
+    except (OSError, ValueError):
+        return None
+    replay_cap, pairs_cap = cfg["replay"]["capacity"], cfg["generator"]["capacity"]
+    learned = cfg["relabel"]["strategy"] == "learned"
+    for r in records:
+        if (r.get("replay_size") or 0) >= 0.95 * replay_cap and (
+                not learned or (r.get("relabel_dataset_size") or 0) >= pairs_cap):
+            return float(r["elapsed_s"])
+    return None
+
+
 def soak(minutes: float, sample_every_s: float, warmup_minutes: float, preset: str, world: str,
          extra: list[str], run_dir: Path, trace_memory: bool = False) -> dict:
     port_base = free_base_port()
@@ -138,10 +157,19 @@ def soak(minutes: float, sample_every_s: float, warmup_minutes: float, preset: s
         log.close()
     report: dict = {"minutes": minutes, "warmup_minutes": warmup_minutes, "preset": preset, "world": world,
                     "target_mib_per_h": TARGET_MIB_PER_H, "roles": {}}
+    records = read_metrics(run_dir / "metrics.jsonl")
+    full_s = stores_full_s(records, run_dir)
+    report["stores_full_minutes"] = None if full_s is None else round(full_s / 60, 1)
     for role, rows in sorted(samples.items()):
         after = [r for r in rows if r[0] >= warmup_minutes * 60]
         slope = growth_mib_per_h([r[0] for r in after], [r[1] for r in after])
+        full = [r for r in rows if full_s is not None and r[0] >= full_s]
+        slope_full = growth_mib_per_h([r[0] for r in full], [r[1] for r in full]) if len(full) >= 10 else None
+        last_hour = [r for r in rows if r[0] >= rows[-1][0] - 3600]
+        slope_last = growth_mib_per_h([r[0] for r in last_hour], [r[1] for r in last_hour])
         report["roles"][role] = {
+            "growth_once_full_mib_per_h": None if slope_full is None else round(slope_full, 2),
+            "growth_last_hour_mib_per_h": None if slope_last is None else round(slope_last, 2),
             "rss_start_mib": round(rows[0][1], 1), "rss_after_warmup_mib": round(after[0][1], 1) if after else None,
             "rss_end_mib": round(rows[-1][1], 1), "samples": len(rows),
             "growth_mib_per_h": None if slope is None else round(slope, 2),
@@ -149,7 +177,6 @@ def soak(minutes: float, sample_every_s: float, warmup_minutes: float, preset: s
             "verdict": "n/a" if slope is None else ("ok" if slope < TARGET_MIB_PER_H else "GROWS"),
             "rss_mib": [round(r[1], 1) for r in rows],
         }
-    records = read_metrics(run_dir / "metrics.jsonl")
     if records:
         last = records[-1]
         keys = ("frames", "updates", "elapsed_s", "success_rate_eval_train", "success_rate_eval_heldout",
@@ -183,10 +210,13 @@ def main(argv: list[str] | None = None) -> int:
                   trace_memory=args.trace_memory)
     print(f"soak: {args.preset} on the {args.world} world, {args.minutes:g} min, RSS every {args.sample_every:g} s, "
           f"growth after {warmup:g} min of warm-up (target < {TARGET_MIB_PER_H:g} MiB/h)")
-    print(f"{'role':<12}{'start MiB':>10}{'warm MiB':>10}{'end MiB':>10}{'MiB/h':>9}  verdict")
+    print(f"replay and generator dataset full at {report['stores_full_minutes']} min")
+    print(f"{'role':<12}{'start MiB':>10}{'warm MiB':>10}{'end MiB':>10}{'MiB/h':>9}{'once full':>11}"
+          f"{'last hour':>11}  verdict")
     for role, r in report["roles"].items():
         print(f"{role:<12}{r['rss_start_mib']:>10}{str(r['rss_after_warmup_mib']):>10}{r['rss_end_mib']:>10}"
-              f"{str(r['growth_mib_per_h']):>9}  {r['verdict']}{' (restarted)' if r['restarted'] else ''}")
+              f"{str(r['growth_mib_per_h']):>9}{str(r['growth_once_full_mib_per_h']):>11}"
+              f"{str(r['growth_last_hour_mib_per_h']):>11}  {r['verdict']}{' (restarted)' if r['restarted'] else ''}")
     print("last metrics:", json.dumps(report.get("last_metrics")))
     if args.out:
         Path(args.out).write_text(json.dumps(report, indent=2))
