@@ -20,7 +20,7 @@ import numpy as np
 def measure(capacity: int | None, repeat: int, directory: Path) -> dict:
     import torch
 
-    from higher_dist.bench.learner_bench import synthetic_episode
+    from higher_dist.bench.learner_bench import fill_replay
     from higher_dist.config import override
     from higher_dist.config_presets import make_config
     from higher_dist.learning.learner_core import LearnerCore
@@ -31,13 +31,7 @@ def measure(capacity: int | None, repeat: int, directory: Path) -> dict:
     if capacity is not None:
         cfg = override(cfg, **{"replay.capacity": capacity})
     core = LearnerCore(cfg)
-    rng = np.random.default_rng(0)
-    pool = [synthetic_episode(rng, int(rng.integers(5, cfg.world.max_steps + 1))) for _ in range(64)]
-    added = 0
-    while added < cfg.replay.capacity:  # full: the oldest episodes start to be overwritten
-        episode = pool[int(rng.integers(len(pool)))]
-        core.replay.add_episode(episode)
-        added += episode.length + 1  # a slot per frame, the last one included
+    fill_replay(core.replay, cfg.world.max_steps)
     rd = RunDir(directory)
     state_s, save_s, load_s = [], [], []
     for _ in range(repeat):

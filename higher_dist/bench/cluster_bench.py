@@ -13,7 +13,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -21,6 +20,7 @@ from pathlib import Path
 import psutil
 
 from higher_dist.launch.layout import available_cores, plan_layout
+from higher_dist.launch.local_cluster import cli_argv
 from higher_dist.launch.topology import free_base_port
 from higher_dist.learning.devices import resolve_device
 from higher_dist.rundir import read_metrics
@@ -68,8 +68,7 @@ def measure_cluster(seconds: float, preset: str, world: str, actors: int | None,
         args += ["--actors", str(actors)]
     if envs:
         args += ["--envs-per-actor", str(envs)]
-    cmd = [sys.executable, "-c", "import sys; from higher_dist.cli import cluster_main as m; sys.exit(m())",
-           *args, *extra]
+    cmd = cli_argv("cluster", *args, *extra)
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, start_new_session=True)
     metrics = run_dir / "metrics.jsonl"
     peak: dict[str, int] = {}

@@ -111,6 +111,17 @@ def synthetic_episode(rng: np.random.Generator, length: int, view_size: int = 7)
                    mission=mission, outcome=outcome, picked=np.full(4, -1, np.int8), goal=np.zeros(4, np.int8))
 
 
+def fill_replay(replay, max_steps: int, seed: int = 0) -> None:
+    """Fill a replay to its capacity with random but valid episodes (64 of them, drawn again and again)."""
+    rng = np.random.default_rng(seed)
+    pool = [synthetic_episode(rng, int(rng.integers(5, max_steps + 1))) for _ in range(64)]
+    added = 0
+    while added < replay.capacity:
+        episode = pool[int(rng.integers(len(pool)))]
+        replay.add_episode(episode)
+        added += episode.length + 1  # a slot per frame, the last one included
+
+
 @dataclasses.dataclass(frozen=True)
 class Lever:
     """One row of the table: DQNConfig overrides plus bf16 autocast."""
@@ -154,13 +165,7 @@ def make_core(batch_size: int, lever: Lever, cfg=None, threads: int = 1):
     cfg = override(cfg, **{"dqn.batch_size": batch_size, "replay.capacity": 100_000, **lever.dqn_overrides()})
     torch.set_num_threads(max(1, threads))
     core = LearnerCore(cfg)
-    rng = np.random.default_rng(0)
-    pool = [synthetic_episode(rng, int(rng.integers(5, cfg.world.max_steps + 1))) for _ in range(64)]
-    added = 0
-    while added < cfg.replay.capacity:
-        episode = pool[int(rng.integers(len(pool)))]
-        core.replay.add_episode(episode)
-        added += episode.length
+    fill_replay(core.replay, cfg.world.max_steps)
     compile_s = None
     if core.dqn.compiled is not None:
         t0 = time.perf_counter()

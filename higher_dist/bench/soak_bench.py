@@ -20,7 +20,6 @@ import os
 import pty
 import signal
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -29,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from higher_dist.launch.local_cluster import cli_argv
 from higher_dist.launch.memory import TRACE_DIR_ENV, TRACE_EVERY_ENV, TRACE_WARMUP_ENV, role_env
 from higher_dist.launch.topology import Endpoints, free_base_port
 from higher_dist.rundir import read_metrics
@@ -68,14 +68,10 @@ def growth_mib_per_h(times_s: list[float], rss_mib: list[float]) -> float | None
     return float(np.polyfit(t, np.asarray(rss_mib), 1)[0])
 
 
-def _cli(command: str, *args: str) -> list[str]:
-    return [sys.executable, "-c", f"import sys; from higher_dist.cli import {command}_main as m; sys.exit(m())", *args]
-
-
 def _dashboard_on_a_terminal(control: str, env: dict[str, str]) -> subprocess.Popen:
     """`higher-dashboard` drawing to a pseudo-terminal whose output is read and thrown away."""
     master, slave = pty.openpty()
-    proc = subprocess.Popen(_cli("dashboard", "--learner", control), stdin=slave, stdout=slave, stderr=slave,
+    proc = subprocess.Popen(cli_argv("dashboard", "--learner", control), stdin=slave, stdout=slave, stderr=slave,
                             env=dict(env, COLUMNS="100", LINES="40", TERM="xterm-256color"), start_new_session=True)
     os.close(slave)
 
@@ -119,7 +115,7 @@ def soak(minutes: float, sample_every_s: float, warmup_minutes: float, preset: s
         env.update({TRACE_DIR_ENV: str(run_dir / "memtrace"), TRACE_WARMUP_ENV: str(warmup_minutes * 60),
                     TRACE_EVERY_ENV: str(max(sample_every_s, min(300.0, minutes * 60 / 10)))})
     log = open(run_dir.parent / f"{run_dir.name}-launcher.log", "wb")
-    launcher = subprocess.Popen(_cli("cluster", *args), stdout=log, stderr=subprocess.STDOUT,
+    launcher = subprocess.Popen(cli_argv("cluster", *args), stdout=log, stderr=subprocess.STDOUT,
                                 start_new_session=True, env=env)
     dashboard = None
     samples: dict[str, list[tuple[float, float, int]]] = {}  # process -> [(t, rss MiB, pid)]

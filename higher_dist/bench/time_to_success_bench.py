@@ -16,7 +16,6 @@ import json
 import os
 import statistics
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,6 +23,7 @@ from pathlib import Path
 from higher_dist import metrics as names
 from higher_dist.rundir import read_metrics
 from higher_dist.bench.cluster_bench import stop_group
+from higher_dist.launch.local_cluster import cli_argv
 from higher_dist.launch.topology import free_base_port
 
 WINDOW = 3  # an evaluation and the two before it
@@ -67,7 +67,7 @@ def run(preset: str, world: str, targets: list[float], frames_cap: int, max_minu
     args = ["--preset", preset, "--world", world, "--frames", str(frames_cap), "--seed", str(seed),
             "--no-dashboard", "--run-dir", str(run_dir), "--port-base", str(free_base_port()),
             "--set", f"eval.every_frames={eval_every}", "--set", f"eval.episodes={eval_episodes}", *extra]
-    cmd = [sys.executable, "-c", "import sys; from higher_dist.cli import cluster_main as m; sys.exit(m())", *args]
+    cmd = cli_argv("cluster", *args)
     launched = time.time()
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, start_new_session=True)
     metrics = run_dir / "metrics.jsonl"

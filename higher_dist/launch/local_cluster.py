@@ -51,8 +51,10 @@ class RoleProcess:
             out.close()  # the child holds its own descriptor
 
 
-def _cli(role: str, *args: str) -> list[str]:
-    return [sys.executable, "-c", f"import sys; from higher_dist.cli import {role}_main as m; sys.exit(m())", *args]
+def cli_argv(command: str, *args: str) -> list[str]:
+    """The argv that runs `higher-COMMAND ARGS` with this interpreter (no console script needed on PATH)."""
+    return [sys.executable, "-c", f"import sys; from higher_dist.cli import {command}_main as m; sys.exit(m())",
+            *args]
 
 
 def host_layout(cfg: Config) -> Layout:
@@ -72,20 +74,20 @@ def build_roles(cfg: Config, run_dir: RunDir, endpoints: Endpoints, resume: bool
     host, port = parse_endpoint(endpoints.control)
     keys = ["--keys", str(security.keys)] if security.encrypted else []
     binding = (["--bind-host", bind_host] if bind_host else []) + (["--insecure"] if security.insecure else [])
-    learner = _cli("learner", "--config", str(requested), "--run-dir", str(run_dir.path),
+    learner = cli_argv("learner", "--config", str(requested), "--run-dir", str(run_dir.path),
                    "--host", host, "--port-base", str(port), *keys, *binding,
                    "--threads", str(layout.learner_threads), "--layout", layout.describe(),
                    *(["--resume"] if resume else []))
-    relabeler = _cli("relabeler", "--learner", endpoints.control, "--state-dir", str(run_dir.path),
+    relabeler = cli_argv("relabeler", "--learner", endpoints.control, "--state-dir", str(run_dir.path),
                      "--threads", str(layout.relabeler_threads), *keys, *binding, *(["--resume"] if resume else []))
     roles = [RoleProcess("learner", learner, logs / "learner.log"),
              RoleProcess("relabeler", relabeler, logs / "relabeler.log")]
     for i in range(cfg.actors):
-        argv = _cli("actor", "--learner", endpoints.control, "--actor-id", str(i),
+        argv = cli_argv("actor", "--learner", endpoints.control, "--actor-id", str(i),
                     "--threads", str(layout.actor_threads), *keys)
         roles.append(RoleProcess(f"actor{i}", argv, logs / f"actor{i}.log"))
     if dashboard:
-        roles.append(RoleProcess("dashboard", _cli("dashboard", "--learner", endpoints.control, *keys),
+        roles.append(RoleProcess("dashboard", cli_argv("dashboard", "--learner", endpoints.control, *keys),
                                  logs / "dashboard.log", essential=False))
     return roles
 

@@ -25,6 +25,7 @@ from pathlib import Path
 import psutil
 
 from higher_dist import metrics as m
+from higher_dist.launch.local_cluster import cli_argv
 from higher_dist.launch.topology import free_base_port
 from higher_dist.reproduce.plan import GENERATOR_EVAL_PAIRS, Plan, RunSpec
 from higher_dist.reproduce.status import frames_done, human_seconds, last_record, run_state
@@ -36,9 +37,8 @@ GENERATOR_RUN_S = 60.0  # a generator measurement, for the ETA
 
 
 def cluster_argv(run: RunSpec, run_dir: Path, port_base: int, resume: bool) -> list[str]:
-    return [sys.executable, "-c", "import sys; from higher_dist.cli import cluster_main as m; sys.exit(m())",
-            *run.cluster_flags(), "--no-dashboard", "--run-dir", str(run_dir), "--port-base", str(port_base),
-            *(["--resume"] if resume else [])]
+    return cli_argv("cluster", *run.cluster_flags(), "--no-dashboard", "--run-dir", str(run_dir),
+                    "--port-base", str(port_base), *(["--resume"] if resume else []))
 
 
 def generator_argv(run: RunSpec, run_dir: Path) -> list[str]:
