@@ -50,7 +50,6 @@ def run_actor(learner: str, actor_id: int | None = None, security: Security | No
     frames, t0 = 0, time.time()
     send_timer, stats = Every(SEND_EVERY_S), Every(cfg.stats_every_s)
     successes, finished = 0, 0
-    eps = agent.epsilons(idx, collector.n_envs, 0)
     try:
         while not stop and not client.poll():
             # Newest weights, if any, without waiting (an invalid frame is counted and dropped). Until the
