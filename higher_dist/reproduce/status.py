@@ -22,8 +22,8 @@ from pathlib import Path
 from higher_dist.reproduce.plan import Plan, RunSpec, default_parallel
 from higher_dist.rundir import read_metrics
 
-FALLBACK_FPS = 1000.0  # docs/results.md: 1,000-1,330 frames/s per run, two runs at a time, idle 2-core machine
-FALLBACK_SPI = 8.0  # the samples per insert those figures ran at
+FALLBACK_FPS = 1100.0  # docs/benchmarks.md: her 1,055-1,176 frames/s per run, two runs at a time, 2-core machine
+FALLBACK_SPI = 4.0  # the samples per insert those figures ran at
 FALLBACK_GEN_STEPS_PER_S = 35.0  # docs/benchmarks.md: 1500 generator steps in 34-55 s
 GEN_OVERHEAD_S = 15.0  # drawing pairs and evaluating, per generator run
 MAX_GAP_S = 30.0  # metrics intervals longer than this are a stop and a resume, not running time
@@ -99,8 +99,8 @@ def rates(plan: Plan, world: str, bench_dir: Path = Path("results")) -> Rates:
             source = f"measured: {bench_dir}/cluster.json from `make bench` on this machine ({fps:.0f} frames/s)"
         else:
             fps, spi = FALLBACK_FPS, FALLBACK_SPI
-            source = (f"not measured here: {FALLBACK_FPS:.0f} frames/s, a plan's runs on the 2-core development "
-                      f"machine (docs/results.md; run `make bench`, or let a plan run, for a figure of this machine)")
+            source = (f"not measured here: {FALLBACK_FPS:.0f} frames/s, a run of two at a time on the 2-core development "
+                      f"machine (docs/benchmarks.md; run `make bench`, or let a plan run, for a figure of this machine)")
     gen = _read_json(bench_dir / "generator.json")
     if gen and gen.get("steps_per_s"):
         gsps, gsource = float(gen["steps_per_s"]), f"{bench_dir}/generator.json ({gen['steps_per_s']} steps/s)"

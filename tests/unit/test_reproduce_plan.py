@@ -106,8 +106,8 @@ def test_run_states_and_measured_frame_rate(tmp_path):
 def test_fallback_rate_names_its_source(tmp_path):
     plan = build(tmp_path, ("main",), seeds=1, methods=["dqn"])
     _, wall, rates = estimate(plan, plan.runs, {"dqn-s0": 16.0}, parallel=1, bench_dir=tmp_path / "none")
-    assert "not measured here" in rates.source and "docs/results.md" in rates.source
-    assert wall == pytest.approx(100_000 / (rates.fps / 2))  # twice the samples per insert: half the rate
+    assert "not measured here" in rates.source and "docs/benchmarks.md" in rates.source
+    assert wall == pytest.approx(100_000 / (rates.fps / 4))  # 4x the samples per insert: a quarter of the rate
 
 
 def test_random_policy_success_is_measured_one_episode_per_env():
