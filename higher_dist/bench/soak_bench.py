@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from higher_dist import metrics as names
 from higher_dist.launch.local_cluster import cli_argv
 from higher_dist.launch.memory import TRACE_DIR_ENV, TRACE_EVERY_ENV, TRACE_WARMUP_ENV, role_env
 from higher_dist.launch.topology import Endpoints, free_base_port
@@ -99,8 +100,8 @@ def stores_full_s(records: list[dict], run_dir: Path) -> float | None:
     replay_cap, pairs_cap = cfg["replay"]["capacity"], cfg["generator"]["capacity"]
     learned = cfg["relabel"]["strategy"] == "learned"
     for r in records:
-        if (r.get("replay_size") or 0) >= 0.95 * replay_cap and (
-                not learned or (r.get("relabel_dataset_size") or 0) >= pairs_cap):
+        if (r.get(names.REPLAY_SIZE) or 0) >= 0.95 * replay_cap and (
+                not learned or (r.get(names.RELABEL_DATASET_SIZE) or 0) >= pairs_cap):
             return float(r["elapsed_s"])
     return None
 
