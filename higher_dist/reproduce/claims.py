@@ -1,8 +1,8 @@
 """results.md: for each claim of the paper, the paper's figure, ours (mean +- std over seeds, at the frames
 reached) and a verdict, with the difference explained where there is one.
 
-Ours are the latest greedy evaluations of each run (`success_rate_eval_train` on training goals unless
-a line says otherwise): `eval.episodes` episodes per goal set (256 by default, a standard error of up to
+Ours are each run's end point: the mean of its last three greedy evaluations (`success_rate_eval_train`
+on training goals unless a line says otherwise): `eval.episodes` episodes per goal set (256 by default, a standard error of up to
 3.1 points per evaluation; results.md states the runs' own figure). The thresholds that turn numbers
 into verdicts are printed in the table's rules column.
 
@@ -22,9 +22,10 @@ import numpy as np
 from higher_dist import metrics as m
 from higher_dist.config import is_babyai_world
 from higher_dist.config_presets import world_by_name
-from higher_dist.reproduce.figures import (EVAL_HELDOUT, EVAL_TRAIN, Group, final_stats, generator_results, has_heldout,
+from higher_dist.reproduce.figures import (EVAL_HELDOUT, EVAL_TRAIN, FINAL_EVALS, Group, final_stats, generator_results, has_heldout,
                                            load_groups)
 from higher_dist.reproduce.plan import NOISE_LEVELS, PAPER_FRAMES, PAPER_SEEDS, TRIGGER_PAIRS, Plan, check_configs
+from higher_dist.reproduce import replay_claims
 from higher_dist.world.batched import batched_world
 from higher_dist.world.spec import RUNNING, SUCCESS, WorldSpec
 
@@ -153,6 +154,11 @@ def claims(plan: Plan) -> list[dict]:
         row["budget"] = [gen]
     rows.append(row)
 
+    if "higher" in groups:
+        rows.append(replay_claims.claim_row(groups["higher"].runs, groups["higher"].label))
+    else:
+        rows.append(replay_claims.claim_row([], "DQN+HIGhER"))
+
     fetchattr_only = not babyai  # noise and generator are FetchAttr's experiments (plan.NOT_ON_BABYAI)
     noisy = {p: _stats(groups, f"noisy-her-p{p}") for p in NOISE_LEVELS}
     row = {"claim": "HER keeps 80% of its performance at 50% noise", "paper": "about 80% of noiseless HER",
@@ -219,9 +225,11 @@ def method_table(plan: Plan) -> list[str]:
     if not has_heldout(plan):
         lines = ["| method | greedy success, the level's missions |", "| --- | --- |"]
         return lines + [f"| {group.label} | {fmt(_stats(groups, variant))} |" for variant, group in groups.items()]
-    lines = ["| method | greedy success, training goals | greedy success, held-out goals |", "| --- | --- | --- |"]
+    lines = ["| method | greedy success, training goals | greedy success, held-out goals | averaged weights, training "
+             "goals |", "| --- | --- | --- | --- |"]
     for variant, group in groups.items():
-        lines.append(f"| {group.label} | {fmt(_stats(groups, variant))} | {fmt(_stats(groups, variant, EVAL_HELDOUT))} |")
+        lines.append(f"| {group.label} | {fmt(_stats(groups, variant))} | {fmt(_stats(groups, variant, EVAL_HELDOUT))} | "
+                     f"{fmt(_stats(groups, variant, m.SUCCESS_EVAL_TRAIN_AVERAGED))} |")
     return lines
 
 
@@ -244,13 +252,19 @@ def write_results(plan: Plan, figures: dict[str, Path]) -> Path:
         *([f"{s.get('world')} is a BabyAI level: the paper's numbers are FetchAttr's, a reference here; the level's "
            "missions are its only goals (no held-out goals), and the noise and generator experiments are "
            "FetchAttr's own (not planned).", ""] if not has_heldout(plan) else []),
-        f"Ours: the latest greedy evaluation of each run (mean +- std over seeds; {episodes} episodes per "
+        f"Ours: each run's end point, the mean of its last {FINAL_EVALS} greedy evaluations (mean +- std over seeds; "
+        f"{episodes} episodes per "
         f"goal set, so one evaluation has a standard error of up to {50 / episodes ** 0.5:.1f} points).", "",
         "| claim of the paper | paper | ours | rule | verdict | why |", "| --- | --- | --- | --- | --- | --- |"]
     for row in claims(plan):
         lines.append(f"| {row['claim']} | {row['paper']} | {row['ours']} | {row['rule']} | **{row['verdict']}** | "
                      f"{row['why'] or '-'} |")
     lines += ["", "## Every method", "", *method_table(plan), ""]
+    groups = load_groups(plan)
+    composition = replay_claims.table({g.label: g.runs for v, g in groups.items() if v in ("higher", "her")})
+    if composition:
+        lines += ["## The replay's composition", "", replay_claims.DEFINITION, "",
+                  *composition, ""]
     if figures:
         lines += ["## Figures", ""]
         for name, path in figures.items():
