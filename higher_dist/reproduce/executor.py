@@ -32,7 +32,8 @@ from higher_dist.reproduce.status import frames_done, human_seconds, last_record
 from higher_dist.rundir import RunDir, atomic_write_bytes, read_metrics
 
 STOP_GRACE_S = 60.0  # a cluster's roles get 20 s each to checkpoint; the supervisor waits for them
-POLL_S = 0.5
+POLL_S = 0.5  # how often a finished run is noticed
+REFRESH_S = 2.0  # how often each run's progress is read from disk and shown
 GENERATOR_RUN_S = 60.0  # a generator measurement, for the ETA
 
 
@@ -68,8 +69,8 @@ class Job:
     resumed_from: int
     samples: list[tuple[float, int]] = field(default_factory=list)  # (time, frames) seen by the view
 
-    def fps(self, window: int = 120) -> float | None:
-        """Frames/s over the last `window` samples (a minute at two a second: metrics come in steps)."""
+    def fps(self, window: int = 30) -> float | None:
+        """Frames/s over the last `window` samples (a minute at one per REFRESH_S: metrics come in steps)."""
         if len(self.samples) < 2:
             return None
         (t0, f0), (t1, f1) = self.samples[max(0, len(self.samples) - window)], self.samples[-1]
@@ -128,6 +129,7 @@ class Executor:
 
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
+            next_refresh = 0.0
             with self.view:
                 while (self.queue or self.jobs) and self.stop_signal is None:
                     while self.queue and len(self.jobs) < self.parallel and self.stop_signal is None:
@@ -137,7 +139,9 @@ class Executor:
                         if code is not None:
                             self.jobs.remove(job)
                             self.close(job, code)
-                    self.refresh()
+                    if time.time() >= next_refresh:
+                        self.refresh()
+                        next_refresh = time.time() + REFRESH_S
                     time.sleep(POLL_S)
                 if self.stop_signal is not None:
                     self.view.event(f"stopping on signal {self.stop_signal}: runs checkpoint and exit")

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from higher_dist.reproduce.plan import Plan, RunSpec, default_parallel
-from higher_dist.rundir import read_metrics
+from higher_dist.rundir import last_record as _tail_record, read_metrics
 
 FALLBACK_FPS = 1100.0  # docs/benchmarks.md: her 1,055-1,176 frames/s per run, two runs at a time, 2-core machine
 FALLBACK_SPI = 4.0  # the samples per insert those figures ran at
@@ -30,8 +30,9 @@ MAX_GAP_S = 30.0  # metrics intervals longer than this are a stop and a resume, 
 
 
 def last_record(path: Path) -> dict:
-    records = read_metrics(path / "metrics.jsonl")
-    return records[-1] if records else {}
+    """A run's newest metrics record, from the file's end: the plan polls every run while it runs, and a
+    finished 2M-frame run's metrics hold thousands of records."""
+    return _tail_record(path / "metrics.jsonl") or {}
 
 
 def frames_done(run: RunSpec, path: Path) -> int:
