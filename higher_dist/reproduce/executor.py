@@ -70,10 +70,12 @@ class Job:
     samples: list[tuple[float, int]] = field(default_factory=list)  # (time, frames) seen by the view
 
     def fps(self, window: int = 30) -> float | None:
-        """Frames/s over the last `window` samples (a minute at one per REFRESH_S: metrics come in steps)."""
-        if len(self.samples) < 2:
+        """Frames/s over the last `window` samples (a minute at one per REFRESH_S: metrics come in steps);
+        None until a full window has passed, as a run that starts or resumes spends its first seconds
+        loading, not stepping, and a rate from them would put the ETA days away."""
+        if len(self.samples) < window:
             return None
-        (t0, f0), (t1, f1) = self.samples[max(0, len(self.samples) - window)], self.samples[-1]
+        (t0, f0), (t1, f1) = self.samples[-window], self.samples[-1]
         return (f1 - f0) / (t1 - t0) if t1 > t0 and f1 > f0 else None
 
 
