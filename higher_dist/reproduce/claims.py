@@ -26,6 +26,7 @@ from higher_dist.reproduce.figures import (EVAL_HELDOUT, EVAL_TRAIN, FINAL_EVALS
                                            load_groups)
 from higher_dist.reproduce.plan import NOISE_LEVELS, PAPER_FRAMES, PAPER_SEEDS, TRIGGER_PAIRS, Plan, check_configs
 from higher_dist.reproduce import replay_claims
+from higher_dist.reproduce.status import frames_done, measured_fps
 from higher_dist.world.batched import batched_world
 from higher_dist.world.spec import RUNNING, SUCCESS, WorldSpec
 
@@ -243,13 +244,49 @@ def _eval_episodes(plan: Plan) -> int:
     return min((c.eval.episodes for c in check_configs(plan).values()), default=0) or 1
 
 
+def machine() -> str:
+    """Cores, CPU model, memory, accelerator and versions: what a reader needs to compare figures."""
+    import torch  # the learner's library; its version and device are part of the result
+
+    model = ""
+    try:
+        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                      if line.startswith("model name")), "")
+    except OSError:
+        pass
+    try:
+        memory = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2 ** 30:.0f} GiB"
+    except (ValueError, OSError, AttributeError):
+        memory = ""
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return (f"{os.cpu_count()} cores ({model or platform.machine()}){memory}, {gpu}, Python "
+            f"{platform.python_version()}, torch {torch.__version__}")
+
+
+def run_time(plan: Plan) -> list[str]:
+    """One line: the cluster runs' frame rates and minutes per run, measured from their own metrics."""
+    fps = {}
+    for run in plan.runs:
+        if run.kind == "cluster" and (plan.path(run) / "metrics.jsonl").exists():
+            value = measured_fps(plan.path(run))
+            if value:
+                fps[run.name] = (value, frames_done(run, plan.path(run)))
+    if not fps:
+        return []
+    rates = [v for v, _ in fps.values()]
+    minutes = [f / v / 60 for v, f in fps.values()]
+    return [f"Time: {len(fps)} cluster runs, {plan.settings.get('parallel', 1)} at a time, ran at {min(rates):,.0f}-"
+            f"{max(rates):,.0f} env frames/s each, {min(minutes):.0f}-{max(minutes):.0f} minutes per run "
+            f"({sum(minutes) / 60:.1f} run-hours in all)."]
+
+
 def write_results(plan: Plan, figures: dict[str, Path]) -> Path:
     s = plan.settings
     episodes = _eval_episodes(plan)
     lines = [
         "# Results of a higher-reproduce plan", "",
-        f"Written {time.strftime('%Y-%m-%d %H:%M')} on {platform.node() or 'this machine'} "
-        f"({os.cpu_count()} cores, {platform.machine()}, Python {platform.python_version()}).",
+        f"Written {time.strftime('%Y-%m-%d %H:%M')} on {platform.node() or 'this machine'}: {machine()}.",
+        *run_time(plan),
         f"Command: `{' '.join(s.get('command') or ['higher-reproduce'])}`",
         f"World {s.get('world')}, profile {s.get('profile')}, "
         f"{s.get('seeds')} seed(s), {s.get('frames', 0):,} env frames per run; the paper: {PAPER_SEEDS} seeds, "

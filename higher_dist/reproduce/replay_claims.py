@@ -159,7 +159,8 @@ def figure(runs: list[Run], label: str, path: Path) -> Path:
         for name, x, y in marks:
             ax.plot([x], [y], marker="*", markersize=11, color=f"C{list(lines).index(name)}", linestyle="none")
         ax.axhline(0.54, color="C3", linestyle=":", linewidth=1)
-        ax.plot([], [], marker="*", color="grey", linestyle="none", label="the paper (stars; its 5M end at our last frame; dotted: its mean time-outs)")
+        ax.plot([], [], marker="*", color="grey", linestyle="none",
+                label="the paper (stars; its 5M end at our last frame; dotted: its mean time-outs)")
     ax.set(title=f"{label}: the replay by origin, {len(data)} seed(s)", xlabel="environment frames",
            ylabel="share of the replay", ylim=(-0.02, 1.02))
     ax.grid(alpha=0.3)

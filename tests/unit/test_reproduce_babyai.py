@@ -102,3 +102,5 @@ def test_the_report_of_a_level_needs_no_held_out_evaluations(tmp_path):
     assert "| method | greedy success, the level's missions |" in results
     assert "| DQN+HER | 50.0% +- 0.0 (1 seed, 1,000 frames) |" in results
     assert "held-out goals |" not in results and "is a BabyAI level" in results
+    # the machine and the runs' own pace: 100 frames a second in these metrics, six runs
+    assert "6 cluster runs, 1 at a time, ran at 100-100 env frames/s each" in results and " cores (" in results
