@@ -2,9 +2,11 @@
 reached) and a verdict, with the difference explained where there is one.
 
 Ours are each run's end point: the mean of its last three greedy evaluations (`success_rate_eval_train`
-on training goals unless a line says otherwise): `eval.episodes` episodes per goal set (256 by default, a standard error of up to
-3.1 points per evaluation; results.md states the runs' own figure). The thresholds that turn numbers
-into verdicts are printed in the table's rules column.
+on training goals unless a line says otherwise): `eval.episodes` episodes per goal set (256 by default,
+a standard error of up to 3.1 points per evaluation; results.md states the runs' own figure). The
+thresholds that turn numbers into verdicts are printed in the table's rules column. The report also
+states the machine, the runs' measured pace and the replay's composition against the paper's
+(replay_claims.py).
 
 On a BabyAI level the table keeps the claims of the methods planned there (DQN, DQN+HER, DQN+HIGhER, the
 trigger point, HIGhER's generator): the paper's numbers are FetchAttr's and serve as a reference. A level
