@@ -99,6 +99,13 @@ def _generator_state(groups: dict[str, Group]) -> str:
     return "; ".join(parts)
 
 
+def _all_right(p: float) -> str:
+    """Why attribute noise costs more than p suggests: a relabel is right only if none of its 4 attributes
+    was swapped (relabel.py NoisyExpertRelabel, the paper's definition)."""
+    return (f"each of the 4 attributes is swapped with probability {p}, so {100 * (1 - p) ** 4:.1f}% of relabels "
+            "are entirely right")
+
+
 def claims(plan: Plan) -> list[dict]:
     groups = load_groups(plan)
     world = plan.settings.get("world", "paper")
@@ -172,6 +179,8 @@ def claims(plan: Plan) -> list[dict]:
         ok = her["mean"] >= 0.10 and ratio >= 0.7
         row["verdict"] = "holds" if ok else ("inconclusive" if her["mean"] < 0.10 else "does not hold")
         row["why"] = f"ratio {ratio:.2f}" if np.isfinite(ratio) else "HER at 0%: no ratio"
+        if not ok:
+            row["why"] += f"; {_all_right(0.5)}"
         row["budget"] = [noisy[0.5], her]
     rows += [row] * fetchattr_only
 
@@ -182,6 +191,8 @@ def claims(plan: Plan) -> list[dict]:
         ok = noisy[0.8]["mean"] > dqn["mean"]
         row["verdict"] = "holds" if ok else "does not hold"
         row["why"] = f"difference {100 * (noisy[0.8]['mean'] - dqn['mean']):+.1f} points"
+        if not ok:
+            row["why"] += f"; {_all_right(0.8)}"
         row["budget"] = [noisy[0.8], dqn]
     rows += [row] * fetchattr_only
 

@@ -197,6 +197,7 @@ def test_noise_and_trigger_figures_and_their_verdicts(tmp_path):
     rows = {row["claim"]: row for row in claims(plan)}
     noise = rows["HER keeps 80% of its performance at 50% noise"]
     assert noise["verdict"] == "does not hold" and "ratio 0.60" in noise["why"]  # 0.3 / 0.5
+    assert "6.2% of relabels are entirely right" in noise["why"]  # (1 - 0.5) ** 4
     assert rows["HER with 80% noise still beats DQN"]["verdict"] == "holds"
     trigger = rows["The trigger point (0, 1000, 2000 pairs) makes no difference"]
     assert trigger["verdict"] == "does not hold" and "spread 30.0 points" in trigger["why"]
