@@ -106,8 +106,8 @@ def _all_right(p: float) -> str:
             "are entirely right")
 
 
-def claims(plan: Plan) -> list[dict]:
-    groups = load_groups(plan)
+def claims(plan: Plan, groups: dict[str, Group] | None = None) -> list[dict]:
+    groups = load_groups(plan) if groups is None else groups
     world = plan.settings.get("world", "paper")
     rows = []
     dqn, her, higher, reward = (_stats(groups, v) for v in ("dqn", "her", "higher", "reward"))
@@ -164,10 +164,8 @@ def claims(plan: Plan) -> list[dict]:
         row["budget"] = [gen]
     rows.append(row)
 
-    if "higher" in groups:
-        rows.append(replay_claims.claim_row(groups["higher"].runs, groups["higher"].label))
-    else:
-        rows.append(replay_claims.claim_row([], "DQN+HIGhER"))
+    higher_group = groups.get("higher")
+    rows.append(replay_claims.claim_row(higher_group.runs if higher_group else [], "DQN+HIGhER"))
 
     fetchattr_only = not babyai  # noise and generator are FetchAttr's experiments (plan.NOT_ON_BABYAI)
     noisy = {p: _stats(groups, f"noisy-her-p{p}") for p in NOISE_LEVELS}
@@ -238,9 +236,9 @@ def _finish(rows: list[dict]) -> list[dict]:
     return rows
 
 
-def method_table(plan: Plan) -> list[str]:
-    """Each method's latest greedy success; a BabyAI level has no held-out goals, hence no such column."""
-    groups = load_groups(plan)
+def method_table(plan: Plan, groups: dict[str, Group] | None = None) -> list[str]:
+    """Each method's end point; a BabyAI level has no held-out goals, hence no such column."""
+    groups = load_groups(plan) if groups is None else groups
     if not has_heldout(plan):
         lines = ["| method | greedy success, the level's missions |", "| --- | --- |"]
         return lines + [f"| {group.label} | {fmt(_stats(groups, variant))} |" for variant, group in groups.items()]
@@ -311,11 +309,11 @@ def write_results(plan: Plan, figures: dict[str, Path]) -> Path:
         f"{episodes} episodes per "
         f"goal set, so one evaluation has a standard error of up to {50 / episodes ** 0.5:.1f} points).", "",
         "| claim of the paper | paper | ours | rule | verdict | why |", "| --- | --- | --- | --- | --- | --- |"]
-    for row in claims(plan):
+    groups = load_groups(plan)  # every run's metrics, read once for the whole report
+    for row in claims(plan, groups):
         lines.append(f"| {row['claim']} | {row['paper']} | {row['ours']} | {row['rule']} | **{row['verdict']}** | "
                      f"{row['why'] or '-'} |")
-    lines += ["", "## Every method", "", *method_table(plan), ""]
-    groups = load_groups(plan)
+    lines += ["", "## Every method", "", *method_table(plan, groups), ""]
     composition = replay_claims.table({g.label: g.runs for v, g in groups.items() if v in ("higher", "her")})
     if composition:
         lines += ["## The replay's composition", "", replay_claims.DEFINITION, "",

@@ -17,8 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from higher_dist.analysis.drawing import pyplot
-from higher_dist.analysis.runs import GRID_POINTS, Run, replay_fractions
+from higher_dist.analysis.runs import Run, replay_fractions
 
 START_FRAMES = 100_000
 END_SHARE = 0.10
@@ -35,8 +34,12 @@ MEASURES = (
     ("positive_end", "positive at the end", 0.60),
     ("timeout_mean", "time-outs, averaged over the run", 0.54),
 )
+PAPER = {key: share for key, _, share in MEASURES}
 # Rows of replay_fractions: success, wrong pick, time-out, relabelled (analysis.runs.REPLAY_KEYS).
 SUCCESS, WRONG, TIMEOUT, RELABELLED = range(4)
+# The shares a figure draws, each from replay_fractions' rows.
+SHARES = {"negative": lambda f: f[WRONG] + f[TIMEOUT], "positive": lambda f: f[SUCCESS],
+          "relabelled": lambda f: f[RELABELLED], "time-outs": lambda f: f[TIMEOUT]}
 
 
 def run_measures(run: Run) -> dict[str, float] | None:
@@ -44,7 +47,7 @@ def run_measures(run: Run) -> dict[str, float] | None:
     x, f = replay_fractions(run)
     if len(x) == 0:
         return None
-    negative = f[WRONG] + f[TIMEOUT]
+    negative = SHARES["negative"](f)
     start = x <= max(START_FRAMES, x[0])
     end = x >= x[-1] - END_SHARE * (x[-1] - x[0])
     peak = int(np.argmax(f[RELABELLED]))
@@ -101,7 +104,8 @@ def claim_row(runs: list[Run], label: str) -> dict:
                    + f" ({label}, {stats['seeds']} seed{'s' * (stats['seeds'] != 1)}, {stats['frames']:,} frames)")
     off = [(key, what, share) for key, what, share in MEASURES if abs(stats[key][0] - share) > CLOSE]
     row["verdict"] = "holds" if not off else "partly" if len(off) < len(MEASURES) else "does not hold"
-    row["why"] = "; ".join(_why(key, stats, share, replay_capacity(runs)) for key, _, share in off)
+    capacity = replay_capacity(runs) if off else None
+    row["why"] = "; ".join(_why(key, stats, share, capacity) for key, _, share in off)
     return row
 
 
@@ -135,37 +139,3 @@ def table(groups: dict[str, list[Run]]) -> list[str]:
     for key, what, share in MEASURES:
         lines.append(f"| {what} | {100 * share:.0f}% | " + " | ".join(_pct(s[key]) for s in stats.values()) + " |")
     return lines
-
-
-def figure(runs: list[Run], label: str, path: Path) -> Path:
-    """Each origin's share over frames for one method (mean and one std over seeds), the paper's figures
-    marked where the paper places them (its end, 5M frames, drawn at our last frame)."""
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6.0, 4.0))
-    data = [d for d in map(replay_fractions, runs) if len(d[0])]
-    if data:
-        start, stop = max(x[0] for x, _ in data), min(x[-1] for x, _ in data)
-        grid = np.linspace(start, stop, GRID_POINTS) if stop > start else np.array([start])
-        shares = np.array([[np.interp(grid, x, row) for row in f] for x, f in data])  # seeds, origins, points
-        lines = {"negative": shares[:, WRONG] + shares[:, TIMEOUT], "positive": shares[:, SUCCESS],
-                 "relabelled": shares[:, RELABELLED], "time-outs": shares[:, TIMEOUT]}
-        for i, (name, ys) in enumerate(lines.items()):
-            mean, std = ys.mean(axis=0), ys.std(axis=0)
-            ax.plot(grid, mean, color=f"C{i}", label=name)
-            ax.fill_between(grid, mean - std, mean + std, color=f"C{i}", alpha=0.2, linewidth=0)
-        peak = group_measures(runs)["peak_frames"]
-        marks = (("negative", start, 0.90), ("relabelled", peak, 0.40), ("relabelled", stop, 0.15),
-                 ("positive", stop, 0.60))
-        for name, x, y in marks:
-            ax.plot([x], [y], marker="*", markersize=11, color=f"C{list(lines).index(name)}", linestyle="none")
-        ax.axhline(0.54, color="C3", linestyle=":", linewidth=1)
-        ax.plot([], [], marker="*", color="grey", linestyle="none",
-                label="the paper (stars; its 5M end at our last frame; dotted: its mean time-outs)")
-    ax.set(title=f"{label}: the replay by origin, {len(data)} seed(s)", xlabel="environment frames",
-           ylabel="share of the replay", ylim=(-0.02, 1.02))
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize="x-small")
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-    return path
