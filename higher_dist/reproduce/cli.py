@@ -14,6 +14,7 @@ from higher_dist.config_flags import positive_int, world_name
 from higher_dist.config_presets import make_config
 from higher_dist.paths import ensure_folder
 from higher_dist.reproduce import plan as plan_mod
+from higher_dist.reproduce.archive import archive as archive_runs
 from higher_dist.reproduce.claims import write_results
 from higher_dist.reproduce.executor import Executor
 from higher_dist.reproduce.figures import draw_all
@@ -54,6 +55,9 @@ def parser() -> argparse.ArgumentParser:
                         "and exit")
     p.add_argument("--report", action="store_true", help="only draw the figures and write results.md from --out")
     p.add_argument("--no-report", action="store_true", help="do not draw figures and results.md at the end")
+    p.add_argument("--archive", default=None, metavar="DEST",
+                   help="only copy --out's finished runs, small enough for git (config, result, thinned metrics), "
+                        "and its plan.json to DEST; DEST is a plan folder that --report reads and a copy of resumes")
     return p
 
 
@@ -70,6 +74,8 @@ def _main(args: argparse.Namespace, argv: list[str]) -> int:
     out = Path(args.out)
     if args.report:
         return report(out)
+    if args.archive:
+        return archive(out, Path(args.archive))
     for item in args.set:
         if "=" not in item:
             raise ConfigError(f"--set {item!r}: expected FIELD=VALUE")
@@ -151,6 +157,17 @@ def print_plan(plan: plan_mod.Plan, spis: dict[str, float], parallel: int) -> No
     print(f"  generator runs: {rates.gen_source}")
     print("nothing was run (--dry-run); without it the plan is written to "
           f"{plan.out / 'plan.json'} and run, finished runs skipped and interrupted ones resumed")
+
+
+def archive(out: Path, dest: Path) -> int:
+    recorded = plan_mod.read_plan(out)
+    try:
+        names = archive_runs(recorded, dest)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    left = len(recorded.runs) - len(names)
+    print(f"{dest}: {len(names)} finished runs archived; {left} not finished (not archived)")
+    return 0
 
 
 def report(out: Path) -> int:

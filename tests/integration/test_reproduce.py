@@ -1,7 +1,7 @@
 """End to end: `higher-reproduce` runs a tiny plan (two methods, one seed, the small world) as real cluster
 process trees, is stopped by SIGTERM to its process group in the middle, resumes from the checkpoints
 when run again, skips what is finished on a third run, and leaves figures and a results table that hold
-numbers. `make reproduce -- --dry-run` prints a plan and its cost without running anything."""
+numbers; its archive reports the same tables and resumes as done. `make reproduce -- --dry-run` prints a plan and its cost without running anything."""
 from __future__ import annotations
 
 import json
@@ -86,6 +86,19 @@ def test_a_tiny_plan_stops_resumes_and_reports(tmp_path):
     assert re.search(r"\*\*(holds|does not hold|mixed)\*\*", claim) and re.search(r"\d+\.\d%", claim), claim
     assert "not measured" in next(line for line in results.splitlines() if "trigger point" in line)
     assert "figures/success_train.png" in results
+
+    # The archive (what git keeps of a plan) reports the same tables, and a copy of it resumes as done.
+    archived = tmp_path / "archive"
+    run = subprocess.run(reproduce(out, "--archive", str(archived)), capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and "2 finished runs archived" in run.stdout, run.stdout + run.stderr
+    assert not list(archived.glob("runs/*/*.ckpt"))
+    run = subprocess.run(reproduce(archived, "--report"), capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stdout + run.stderr
+    tables = lambda text: [line for line in text.splitlines() if line.startswith("| DQN")]  # noqa: E731
+    assert tables((archived / "results.md").read_text()) == tables(results)
+    fourth = Proc(reproduce(archived, "--no-report"), tmp_path / "fourth.log", cwd=tmp_path)
+    assert fourth.wait(60) == 0, tail(fourth.output())
+    assert "started" not in fourth.output() and "resumed" not in fourth.output(), fourth.output()
 
 
 def test_make_reproduce_dry_run_prints_the_plan_and_its_cost(tmp_path):
