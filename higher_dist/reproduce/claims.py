@@ -291,16 +291,34 @@ def run_time(plan: Plan) -> list[str]:
             f"({sum(minutes) / 60:.1f} run-hours in all)."]
 
 
+def budgets(plan: Plan) -> str:
+    """Each experiment's seeds and budget, from its runs (one folder may hold several invocations)."""
+    by_name = {r.name: r for r in plan.runs}
+    parts = []
+    for experiment, names in plan.experiments.items():
+        runs = [by_name[n] for n in names if n in by_name]
+        if not runs:
+            continue
+        seeds = len({r.seed for r in runs})
+        if runs[0].kind == "generator":
+            budget = f"{max(r.steps for r in runs)} Adam steps"
+        else:
+            budget = " and ".join(f"{f:,}" for f in sorted({r.frames for r in runs}, reverse=True)) + " frames"
+        parts.append(f"{experiment}: {seeds} seed{'s' if seeds > 1 else ''} x {budget}")
+    return "; ".join(parts)
+
+
 def write_results(plan: Plan, figures: dict[str, Path]) -> Path:
     s = plan.settings
     episodes = _eval_episodes(plan)
+    commands = s.get("commands") or [s.get("command") or ["higher-reproduce"]]
     lines = [
         "# Results of a higher-reproduce plan", "",
-        f"Written {time.strftime('%Y-%m-%d %H:%M')} on {platform.node() or 'this machine'}: {machine()}.",
+        f"Written {time.strftime('%Y-%m-%d %H:%M')}. The runs ran on: {'; '.join(s.get('machines') or [machine()])}.",
         *run_time(plan),
-        f"Command: `{' '.join(s.get('command') or ['higher-reproduce'])}`",
-        f"World {s.get('world')}, profile {s.get('profile')}, "
-        f"{s.get('seeds')} seed(s), {s.get('frames', 0):,} env frames per run; the paper: {PAPER_SEEDS} seeds, "
+        "Commands (in the order they ran; rerunning one resumes its part of the plan):", "",
+        *(f"    {' '.join(c)}" for c in commands), "",
+        f"World {s.get('world')}, profile {s.get('profile')}; {budgets(plan)}; the paper: {PAPER_SEEDS} seeds, "
         f"{PAPER_FRAMES:,} frames.", "",
         *([f"{s.get('world')} is a BabyAI level: the paper's numbers are FetchAttr's, a reference here; the level's "
            "missions are its only goals (no held-out goals), and the noise and generator experiments are "

@@ -15,7 +15,7 @@ from higher_dist.config_presets import make_config
 from higher_dist.paths import ensure_folder
 from higher_dist.reproduce import plan as plan_mod
 from higher_dist.reproduce.archive import archive as archive_runs
-from higher_dist.reproduce.claims import write_results
+from higher_dist.reproduce.claims import machine, write_results
 from higher_dist.reproduce.executor import Executor
 from higher_dist.reproduce.figures import draw_all
 from higher_dist.reproduce.status import estimate, human_seconds
@@ -99,6 +99,7 @@ def _main(args: argparse.Namespace, argv: list[str]) -> int:
         print_plan(plan, spis, parallel)
         return 0
     _lock(out)
+    plan.settings["machine"] = machine()
     recorded = plan_mod.merge_and_write(plan)
     _, _, rates = estimate(plan, plan.runs, spis, parallel)
     view = make_view()

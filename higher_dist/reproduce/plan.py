@@ -40,6 +40,9 @@ TRIGGER_PAIRS = (0, 1000, 2000)
 GENERATOR_PAIRS = (1000, 2000, 3000, 4000, 5000)
 GENERATOR_STEPS = 1500  # Adam steps per generator measurement (as `higher-bench generator`)
 GENERATOR_EVAL_PAIRS = 1000  # fresh pairs per goal set (seen, unseen)
+# What each invocation on one folder adds to plan.json's settings: the report names every command that
+# ran the plan and every machine it ran on, not only the latest (list key: the invocation's own key).
+HISTORY = {"commands": "command", "machines": "machine"}
 EVALS_PER_RUN = 10  # at least this many greedy evaluations per run, whatever its budget
 
 # (variant, preset, label, extra --set overrides) of each experiment
@@ -276,11 +279,19 @@ def merge_and_write(plan: Plan) -> Plan:
     experiments = {**old.get("experiments", {})}
     for name, names in plan.experiments.items():
         experiments[name] = list(dict.fromkeys([*experiments.get(name, []), *names]))
-    merged = Plan(plan.out, list(merged_runs.values()), experiments, plan.settings)
+    settings = {**plan.settings, **{key: _union(old.get("settings", {}), plan.settings, key) for key in HISTORY}}
+    merged = Plan(plan.out, list(merged_runs.values()), experiments, settings)
     plan.runs = [merged_runs[r.name] for r in plan.runs]  # what this invocation runs, as recorded
     plan.out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(plan.out / "plan.json", merged.to_json().encode())
     return merged
+
+
+def _union(old: dict[str, Any], new: dict[str, Any], key: str) -> list:
+    """Every distinct value `key` took over the invocations on one folder, oldest first."""
+    single = HISTORY[key]
+    values = [*old.get(key, []), *([old[single]] if single in old and not old.get(key) else []), new.get(single)]
+    return [v for i, v in enumerate(values) if v and v not in values[:i]]
 
 
 def read_plan(out: str | os.PathLike) -> Plan:

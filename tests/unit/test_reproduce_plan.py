@@ -78,6 +78,21 @@ def test_plan_json_keeps_earlier_runs_and_refuses_changed_ones(tmp_path):
     assert plan_mod.read_plan(tmp_path / "p").experiments["noise"][0] == "her-s0"
 
 
+def test_plan_json_names_every_command_and_machine_and_the_report_every_budget(tmp_path):
+    from higher_dist.reproduce.claims import budgets
+
+    for experiments, frames, command, host in ((("main",), 200_000, ["higher-reproduce", "main"], "box A"),
+                                                (("trigger",), 100_000, ["higher-reproduce", "trigger"], "box B"),
+                                                (("main",), 200_000, ["higher-reproduce", "main"], "box A")):
+        plan = build(tmp_path, experiments, seeds=2, frames=frames, command=command)
+        plan.settings["machine"] = host
+        recorded = plan_mod.merge_and_write(plan)
+    settings = plan_mod.read_plan(tmp_path / "p").settings
+    assert settings["commands"] == [["higher-reproduce", "main"], ["higher-reproduce", "trigger"]]
+    assert settings["machines"] == ["box A", "box B"]
+    assert budgets(recorded) == "main: 2 seeds x 200,000 frames; trigger: 2 seeds x 100,000 frames"
+
+
 def _metrics(path, rows):
     path.mkdir(parents=True, exist_ok=True)
     (path / "metrics.jsonl").write_text("".join(json.dumps({"time": t, "frames": f}) + "\n" for t, f in rows))
