@@ -10,8 +10,9 @@ What a finished run keeps:
 - result.json of a generator run, as it is;
 - metrics.jsonl thinned: the first and the last record, every record whose greedy evaluation
   differs from the record before (so every end point and every evaluation curve is exactly the run's),
-  and one record per THIN_FRAMES env frames between them (the training curves and the replay
-  composition at that resolution). The per-process liveness (`roles`) is left out: it describes the machine, not the result.
+  every record of the first START_FRAMES frames (the replay's composition "at the start"), and between
+  them one record per THIN_FRAMES env frames and at least one per THIN_SECONDS (the training curves and
+  the run's pace at that resolution). The per-process liveness (`roles`) is left out: it describes the machine, not the result.
 An unfinished run is not archived: without its checkpoint it could not resume anyway.
 """
 from __future__ import annotations
@@ -22,10 +23,12 @@ from pathlib import Path
 
 from higher_dist import metrics as m
 from higher_dist.reproduce.plan import Plan
-from higher_dist.reproduce.status import run_state
+from higher_dist.reproduce.replay_claims import START_FRAMES
+from higher_dist.reproduce.status import MAX_GAP_S, run_state
 from higher_dist.rundir import atomic_write_bytes, read_metrics
 
-THIN_FRAMES = 5000  # about 4 s of a run at 1,100 frames/s: below the pace measure's gap limit (status.MAX_GAP_S)
+THIN_FRAMES = 10_000  # 200 points on a 2M-frame curve
+THIN_SECONDS = MAX_GAP_S / 2  # a slow run keeps a record this often: the pace measure counts longer gaps as stops
 DROPPED_KEYS = ("roles",)
 EVAL_KEYS = (m.EVAL_FRAMES, m.SUCCESS_EVAL_TRAIN, m.SUCCESS_EVAL_HELDOUT, m.SUCCESS_EVAL_TRAIN_AVERAGED,
              m.SUCCESS_EVAL_HELDOUT_AVERAGED)  # a change in any of them is an evaluation's result
@@ -35,17 +38,25 @@ KEPT_FILES = ("config.json", "result.json")
 def thin_records(records: list[dict], every: int = THIN_FRAMES) -> list[dict]:
     """The records an archived run keeps (see the module's docstring), in their order."""
     kept: list[dict] = []
-    next_frames, previous_eval = 0.0, None
+    next_frames, next_time, previous_eval = 0.0, float("-inf"), None
     for i, record in enumerate(records):
-        frames, evaluated = record.get("frames"), tuple(record.get(k) for k in EVAL_KEYS)
+        frames, when = record.get("frames"), record.get("time")
+        evaluated = tuple(record.get(k) for k in EVAL_KEYS)
         new_eval = evaluated != previous_eval  # every record repeats the latest evaluation
-        on_step = isinstance(frames, (int, float)) and frames >= next_frames
-        if i == 0 or i == len(records) - 1 or new_eval or on_step:
+        on_step = _number(frames) and (frames >= next_frames or frames <= START_FRAMES)
+        overdue = _number(when) and when >= next_time
+        if i == 0 or i == len(records) - 1 or new_eval or on_step or overdue:
             kept.append({k: v for k, v in record.items() if k not in DROPPED_KEYS})
-            if isinstance(frames, (int, float)):
+            if _number(frames):
                 next_frames = (frames // every + 1) * every
+            if _number(when):
+                next_time = when + THIN_SECONDS
         previous_eval = evaluated
     return kept
+
+
+def _number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def archive(plan: Plan, dest: Path) -> list[str]:

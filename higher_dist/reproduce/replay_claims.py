@@ -8,6 +8,8 @@ average. Ours come from the learner's counts of the transitions in its replay by
 - "at the start" is the mean over the first START_FRAMES frames; "once the generator runs" is the
   highest relabelled share of the run (it falls afterwards as successes crowd relabels out); "at the
   end" is the mean over the run's last END_SHARE of frames; time-outs are averaged over the run's frames.
+  Every mean is over frames, not over records: a run writes records per second, so a slow stretch (the
+  first seconds, while the learner compiles) would otherwise weigh more.
 A share within CLOSE of the paper's counts as matching it.
 """
 from __future__ import annotations
@@ -51,15 +53,16 @@ def run_measures(run: Run) -> dict[str, float] | None:
     start = x <= max(START_FRAMES, x[0])
     end = x >= x[-1] - END_SHARE * (x[-1] - x[0])
     peak = int(np.argmax(f[RELABELLED]))
-    return {"negative_start": float(negative[start].mean()),
+    return {"negative_start": _frame_mean(x[start], negative[start]),
             "relabelled_peak": float(f[RELABELLED][peak]), "peak_frames": float(x[peak]),
-            "relabelled_end": float(f[RELABELLED][end].mean()), "positive_end": float(f[SUCCESS][end].mean()),
-            "timeout_mean": _frame_mean(x, f[TIMEOUT]), "timeout_end": float(f[TIMEOUT][end].mean()),
+            "relabelled_end": _frame_mean(x[end], f[RELABELLED][end]),
+            "positive_end": _frame_mean(x[end], f[SUCCESS][end]),
+            "timeout_mean": _frame_mean(x, f[TIMEOUT]), "timeout_end": _frame_mean(x[end], f[TIMEOUT][end]),
             "frames": float(x[-1])}
 
 
 def _frame_mean(x: np.ndarray, y: np.ndarray) -> float:
-    """Mean over frames, not over records (records come per second, so a slow stretch would weigh more)."""
+    """Mean of y over the frames x spans (trapezoids); one point, or no frames between them: the plain mean."""
     if len(x) < 2 or x[-1] <= x[0]:
         return float(y.mean())
     return float(np.sum((y[1:] + y[:-1]) / 2 * np.diff(x)) / (x[-1] - x[0]))
@@ -134,7 +137,7 @@ def table(groups: dict[str, list[Run]]) -> list[str]:
     if not stats:
         return []
     head = "| share of the replay's transitions | the paper (HIGhER, 5M frames) | " + " | ".join(
-        f"{label} ({s['seeds']} seeds, {s['frames']:,} frames)" for label, s in stats.items()) + " |"
+        f"{label} ({s['seeds']} seed{'s' * (s['seeds'] != 1)}, {s['frames']:,} frames)" for label, s in stats.items()) + " |"
     lines = [head, "| --- | --- |" + " --- |" * len(stats)]
     for key, what, share in MEASURES:
         lines.append(f"| {what} | {100 * share:.0f}% | " + " | ".join(_pct(s[key]) for s in stats.values()) + " |")

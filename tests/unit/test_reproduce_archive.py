@@ -17,7 +17,7 @@ from higher_dist.reproduce.status import run_state
 from higher_dist.rundir import read_metrics
 
 
-def records(frames=200_000, step=700, every_eval=20_000, seed=0):
+def records(frames=1_000_000, step=700, every_eval=20_000, seed=0):
     """A run's metrics as the supervisor writes them: a record every `step` frames; an evaluation every
     `every_eval` frames whose averaged-weights half arrives a few records after the online half."""
     rng = random.Random(seed)

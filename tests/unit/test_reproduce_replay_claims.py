@@ -37,6 +37,16 @@ def test_measures_of_one_run_by_hand(tmp_path):
     assert got["timeout_mean"] == pytest.approx(expected)
 
 
+def test_measures_weigh_frames_not_records(tmp_path):
+    """A run writes a record every 2 s: the first seconds (the learner compiling, few frames) hold dozens of
+    records. The start's share weighs each stretch by the frames it spans."""
+    slow_start = [_counts(f, 0, 0, 100, 0) for f in range(0, 1001, 20)]  # 51 records, all negative
+    rows = slow_start + [_counts(50_000, 50, 0, 50, 0), _counts(100_000, 50, 0, 50, 0), _counts(1_000_000, 50, 0, 50, 0)]
+    got = replay_claims.run_measures(_run(tmp_path, rows))
+    expected = (1.0 * 1000 + 0.75 * 49_000 + 0.5 * 50_000) / 100_000  # trapezoids over 0..100k frames
+    assert got["negative_start"] == pytest.approx(expected)
+
+
 def test_the_claim_row_holds_when_every_share_is_close_and_names_each_that_is_not(tmp_path):
     paper_like = [_counts(0, 10, 20, 70, 0), _counts(400_000, 5, 0, 55, 40), _counts(1_790_000, 35, 0, 50, 15),
                   _counts(2_000_000, 60, 0, 25, 15)]
@@ -57,7 +67,7 @@ def test_the_claim_row_holds_when_every_share_is_close_and_names_each_that_is_no
 def test_the_table_has_the_paper_and_each_method_with_seeds_and_frames(tmp_path):
     rows = [_counts(0, 10, 20, 70, 0), _counts(1_000_000, 60, 5, 20, 15)]
     lines = replay_claims.table({"DQN+HIGhER": [_run(tmp_path, rows)], "empty": []})
-    assert lines[0].count("|") == 4 and "DQN+HIGhER (1 seeds, 1,000,000 frames)" in lines[0]
+    assert lines[0].count("|") == 4 and "DQN+HIGhER (1 seed, 1,000,000 frames)" in lines[0]
     assert lines[2].startswith("| negative at the start | 90% | 90% +- 0 |")
 
 
