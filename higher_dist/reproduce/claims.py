@@ -80,7 +80,7 @@ def _budget_note(stats_list: list[dict | None]) -> str:
         notes.append(f"measured at {frames:,} frames, {100 * frames / PAPER_FRAMES:.2g}% of the paper's {PAPER_FRAMES:,}: "
                      "curves still rising there are not the paper's end points")
     if seeds < PAPER_SEEDS:
-        notes.append(f"{seeds} seed{"s" * (seeds != 1)} against the paper's {PAPER_SEEDS}")
+        notes.append(f"{seeds} seed{'s' * (seeds != 1)} against the paper's {PAPER_SEEDS}")
     return "; ".join(notes)
 
 
