@@ -43,6 +43,10 @@ def has_heldout(plan: Plan) -> bool:
     return not is_babyai_world(plan.settings.get("world", "paper"))
 
 
+def _seeds(n: int) -> str:
+    return f"{n} seed{'s' * (n != 1)}"
+
+
 def load_groups(plan: Plan) -> dict[str, Group]:
     groups: dict[str, Group] = {}
     for spec in plan.runs:
@@ -135,7 +139,7 @@ def _curves(ax, groups: list[Group], wanted: str) -> bool:
             continue
         grid, mean, std = band
         note = "" if key == wanted else " (training success: no evaluation yet)"
-        ax.plot(grid, mean, color=f"C{i}", label=f"{group.label}, {len(group.runs)} seed(s){note}")
+        ax.plot(grid, mean, color=f"C{i}", label=f"{group.label}, {_seeds(len(group.runs))}{note}")
         ax.fill_between(grid, mean - std, mean + std, color=f"C{i}", alpha=0.2, linewidth=0)
         drawn = True
     return drawn
@@ -208,7 +212,7 @@ def replay_figure(groups: list[Group], path: Path) -> Path:
 def replay_vs_paper_figure(group: Group, path: Path) -> Path:
     """Each origin's share over frames for one method (mean and one std over seeds), the paper's figures
     as stars where the paper places them (its end, 5M frames, drawn at our last frame)."""
-    fig, ax = _figure(f"{group.label}: the replay by origin, {len(group.runs)} seed(s)", "environment frames",
+    fig, ax = _figure(f"{group.label}: the replay by origin, {_seeds(len(group.runs))}", "environment frames",
                       "share of the replay")
     data = [d for d in map(replay_fractions, group.runs) if len(d[0])]
     bands = {name: std_band([(x, share(f)) for x, f in data]) for name, share in replay_claims.SHARES.items()}
