@@ -119,11 +119,15 @@ def _figure(title: str, xlabel: str, ylabel: str):
     return fig, ax
 
 
-def _save(fig, ax, path: Path) -> Path:
+def _save(fig, ax, path: Path, legend_below: bool = False) -> Path:
+    """`legend_below`: under the axes, for a figure whose marks would hide behind a legend inside."""
     import matplotlib.pyplot as plt
 
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="best", fontsize="x-small")
+        if legend_below:
+            ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=2, fontsize="x-small")
+        else:
+            ax.legend(loc="best", fontsize="x-small")
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
@@ -233,7 +237,7 @@ def replay_vs_paper_figure(group: Group, path: Path) -> Path:
         ax.axhline(paper["timeout_mean"], color=f"C{list(bands).index('time-outs')}", linestyle=":", linewidth=1)
         ax.plot([], [], marker="*", color="grey", linestyle="none",
                 label="the paper (stars; its 5M end at our last frame; dotted: its mean time-outs)")
-    return _save(fig, ax, path)
+    return _save(fig, ax, path, legend_below=True)
 
 
 def noise_figure(groups: dict[str, Group], path: Path) -> Path:
