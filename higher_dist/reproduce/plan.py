@@ -135,7 +135,8 @@ def experiments_for(world: str, asked: list[str] | None) -> tuple[list[str], lis
 def default_parallel() -> int:
     """Runs at once that fit this machine: one per core. A run's roles wait on each other (the learner on
     experience, the actor on weights), so one run alone leaves part of the machine idle; on the 2-core
-    development machine two runs at a time each ran at 1,000-1,330 frames/s (docs/results.md)."""
+    development machine two runs at a time each ran at 1,200-1,750 frames/s (docs/results.md, "How it
+    was measured")."""
     return max(1, os.cpu_count() or 1)
 
 

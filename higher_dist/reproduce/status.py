@@ -8,7 +8,7 @@ The cost estimate divides the frames left by a frames/s figure, taken from the f
 exists, and says which one it used:
 1. runs of this plan's folder on the same world (measured here, at the parallelism they ran with);
 2. `results/cluster.json` from `make bench` on this machine;
-3. the figure measured on the 2-core development machine (docs/results.md: 1,000 frames/s per run).
+3. the figure measured on the 2-core development machine (docs/benchmarks.md: 1,100 frames/s per run).
 A run's learner bounds its frame rate at a fixed samples-per-insert ratio, so a run whose config asks
 for more samples per frame is assumed proportionally slower.
 """
