@@ -22,6 +22,7 @@ import shutil
 from pathlib import Path
 
 from higher_dist import metrics as m
+from higher_dist.analysis.runs import is_number
 from higher_dist.reproduce.plan import Plan
 from higher_dist.reproduce.replay_claims import START_FRAMES
 from higher_dist.reproduce.status import MAX_GAP_S, run_state
@@ -43,20 +44,16 @@ def thin_records(records: list[dict], every: int = THIN_FRAMES) -> list[dict]:
         frames, when = record.get("frames"), record.get("time")
         evaluated = tuple(record.get(k) for k in EVAL_KEYS)
         new_eval = evaluated != previous_eval  # every record repeats the latest evaluation
-        on_step = _number(frames) and (frames >= next_frames or frames <= START_FRAMES)
-        overdue = _number(when) and when >= next_time
+        on_step = is_number(frames) and (frames >= next_frames or frames <= START_FRAMES)
+        overdue = is_number(when) and when >= next_time
         if i == 0 or i == len(records) - 1 or new_eval or on_step or overdue:
             kept.append({k: v for k, v in record.items() if k not in DROPPED_KEYS})
-            if _number(frames):
+            if is_number(frames):
                 next_frames = (frames // every + 1) * every
-            if _number(when):
+            if is_number(when):
                 next_time = when + THIN_SECONDS
         previous_eval = evaluated
     return kept
-
-
-def _number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def archive(plan: Plan, dest: Path) -> list[str]:

@@ -26,7 +26,8 @@ from higher_dist.config import is_babyai_world
 from higher_dist.config_presets import world_by_name
 from higher_dist.reproduce.figures import (EVAL_HELDOUT, EVAL_TRAIN, FINAL_EVALS, Group, final_stats, generator_results, has_heldout,
                                            load_groups)
-from higher_dist.reproduce.plan import NOISE_LEVELS, PAPER_FRAMES, PAPER_SEEDS, TRIGGER_PAIRS, Plan, check_configs
+from higher_dist.reproduce.plan import (NOISE_LEVELS, PAPER_FRAMES, PAPER_SEEDS, TRIGGER_PAIRS, Plan,
+                                        check_configs, seeds_text)
 from higher_dist.reproduce import replay_claims
 from higher_dist.reproduce.status import frames_done, measured_fps
 from higher_dist.world.batched import batched_world
@@ -54,7 +55,7 @@ def random_success(world: str, envs: int | None = None, seed: int = 0) -> float:
 def fmt(stats: dict | None) -> str:
     if not stats:
         return "not measured"
-    return (f"{100 * stats['mean']:.1f}% +- {100 * stats['std']:.1f} ({stats['n']} seed{'s' * (stats['n'] != 1)}, "
+    return (f"{100 * stats['mean']:.1f}% +- {100 * stats['std']:.1f} ({seeds_text(stats['n'])}, "
             f"{stats['frames']:,} frames{stats.get('note', '')})")
 
 
@@ -80,7 +81,7 @@ def _budget_note(stats_list: list[dict | None]) -> str:
         notes.append(f"measured at {frames:,} frames, {100 * frames / PAPER_FRAMES:.2g}% of the paper's {PAPER_FRAMES:,}: "
                      "curves still rising there are not the paper's end points")
     if seeds < PAPER_SEEDS:
-        notes.append(f"{seeds} seed{'s' * (seeds != 1)} against the paper's {PAPER_SEEDS}")
+        notes.append(f"{seeds_text(seeds)} against the paper's {PAPER_SEEDS}")
     return "; ".join(notes)
 
 
@@ -216,7 +217,7 @@ def claims(plan: Plan, groups: dict[str, Group] | None = None) -> list[dict]:
         unseen = [r["unseen_exact_match"] for r in results[5000]]
         steps = sorted({r.get("steps") for r in results[5000] if r.get("steps")})
         row["ours"] = (f"seen {100 * np.mean(seen):.1f}% +- {100 * np.std(seen):.1f}, unseen {100 * np.mean(unseen):.1f}% "
-                       f"+- {100 * np.std(unseen):.1f} ({len(seen)} seed{'s' * (len(seen) != 1)}, "
+                       f"+- {100 * np.std(unseen):.1f} ({seeds_text(len(seen))}, "
                        f"{'/'.join(f'{s:,}' for s in steps) or '?'} Adam steps)")
         if 1000 in results:
             few = [r["unseen_exact_match"] for r in results[1000]]
@@ -304,7 +305,7 @@ def budgets(plan: Plan) -> str:
             budget = f"{max(r.steps for r in runs)} Adam steps"
         else:
             budget = " and ".join(f"{f:,}" for f in sorted({r.frames for r in runs}, reverse=True)) + " frames"
-        parts.append(f"{experiment}: {seeds} seed{'s' if seeds > 1 else ''} x {budget}")
+        parts.append(f"{experiment}: {seeds_text(seeds)} x {budget}")
     return "; ".join(parts)
 
 

@@ -136,7 +136,7 @@ def print_plan(plan: plan_mod.Plan, spis: dict[str, float], parallel: int) -> No
     rows, wall, rates = estimate(plan, plan.runs, spis, parallel)
     s = plan.settings
     print(f"higher-reproduce plan for {plan.out}: experiments {', '.join(plan.experiments)}; world {s['world']}; "
-          f"profile {s['profile']}; {s['seeds']} seed{'s' * (s['seeds'] != 1)}; {s['frames']:,} frames "
+          f"profile {s['profile']}; {plan_mod.seeds_text(s['seeds'])}; {s['frames']:,} frames "
           f"per run (the paper: {plan_mod.PAPER_SEEDS} seeds x {plan_mod.PAPER_FRAMES:,} frames)")
     own = plan_mod.profile_flags(s["profile"])
     print(f"  profile flags of every run: {' '.join(own) or '(none)'}")

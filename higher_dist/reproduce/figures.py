@@ -18,7 +18,7 @@ from higher_dist.analysis.drawing import pyplot
 from higher_dist.config import is_babyai_world
 from higher_dist.analysis.runs import GRID_POINTS, REPLAY_KEYS, NoRun, Run, is_number, load_run, replay_fractions
 from higher_dist.reproduce import replay_claims
-from higher_dist.reproduce.plan import GENERATOR_PAIRS, NOISE_LEVELS, TRIGGER_PAIRS, Plan
+from higher_dist.reproduce.plan import GENERATOR_PAIRS, NOISE_LEVELS, TRIGGER_PAIRS, Plan, seeds_text
 
 EVAL_TRAIN, EVAL_HELDOUT = m.SUCCESS_EVAL_TRAIN, m.SUCCESS_EVAL_HELDOUT
 EVALUATIONS = (EVAL_TRAIN, EVAL_HELDOUT, m.SUCCESS_EVAL_TRAIN_AVERAGED, m.SUCCESS_EVAL_HELDOUT_AVERAGED)
@@ -41,10 +41,6 @@ class Group:
 def has_heldout(plan: Plan) -> bool:
     """Whether the plan's world keeps goals out of training (FetchAttr does; a BabyAI level does not)."""
     return not is_babyai_world(plan.settings.get("world", "paper"))
-
-
-def _seeds(n: int) -> str:
-    return f"{n} seed{'s' * (n != 1)}"
 
 
 def load_groups(plan: Plan) -> dict[str, Group]:
@@ -143,7 +139,7 @@ def _curves(ax, groups: list[Group], wanted: str) -> bool:
             continue
         grid, mean, std = band
         note = "" if key == wanted else " (training success: no evaluation yet)"
-        ax.plot(grid, mean, color=f"C{i}", label=f"{group.label}, {_seeds(len(group.runs))}{note}")
+        ax.plot(grid, mean, color=f"C{i}", label=f"{group.label}, {seeds_text(len(group.runs))}{note}")
         ax.fill_between(grid, mean - std, mean + std, color=f"C{i}", alpha=0.2, linewidth=0)
         drawn = True
     return drawn
@@ -216,7 +212,7 @@ def replay_figure(groups: list[Group], path: Path) -> Path:
 def replay_vs_paper_figure(group: Group, path: Path) -> Path:
     """Each origin's share over frames for one method (mean and one std over seeds), the paper's figures
     as stars where the paper places them (its end, 5M frames, drawn at our last frame)."""
-    fig, ax = _figure(f"{group.label}: the replay by origin, {_seeds(len(group.runs))}", "environment frames",
+    fig, ax = _figure(f"{group.label}: the replay by origin, {seeds_text(len(group.runs))}", "environment frames",
                       "share of the replay")
     data = [d for d in map(replay_fractions, group.runs) if len(d[0])]
     bands = {name: std_band([(x, share(f)) for x, f in data]) for name, share in replay_claims.SHARES.items()}

@@ -110,6 +110,11 @@ class Plan:
                            "runs": {r.name: asdict(r) for r in self.runs}}, indent=2)
 
 
+def seeds_text(n: int) -> str:
+    """'1 seed', '3 seeds': how every table, legend and reason counts seeds."""
+    return f"{n} seed{'s' * (n != 1)}"
+
+
 # -- the profile -------------------------------------------------------------------------------------
 def profile_flags(profile: str) -> tuple[str, ...]:
     """The higher-cluster flags of a profile (the generator runs read the same config)."""

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from higher_dist.analysis.runs import Run, replay_fractions
+from higher_dist.reproduce.plan import seeds_text
 
 START_FRAMES = 100_000
 END_SHARE = 0.10
@@ -104,7 +105,7 @@ def claim_row(runs: list[Run], label: str) -> dict:
         row["ours"] = "not measured"
         return row
     row["ours"] = ("; ".join(f"{what.split(' (')[0]} {_pct(stats[key])}" for key, what, _ in MEASURES)
-                   + f" ({label}, {stats['seeds']} seed{'s' * (stats['seeds'] != 1)}, {stats['frames']:,} frames)")
+                   + f" ({label}, {seeds_text(stats['seeds'])}, {stats['frames']:,} frames)")
     off = [(key, what, share) for key, what, share in MEASURES if abs(stats[key][0] - share) > CLOSE]
     row["verdict"] = "holds" if not off else "partly" if len(off) < len(MEASURES) else "does not hold"
     capacity = replay_capacity(runs) if off else None
@@ -137,7 +138,7 @@ def table(groups: dict[str, list[Run]]) -> list[str]:
     if not stats:
         return []
     head = "| share of the replay's transitions | the paper (HIGhER, 5M frames) | " + " | ".join(
-        f"{label} ({s['seeds']} seed{'s' * (s['seeds'] != 1)}, {s['frames']:,} frames)" for label, s in stats.items()) + " |"
+        f"{label} ({seeds_text(s['seeds'])}, {s['frames']:,} frames)" for label, s in stats.items()) + " |"
     lines = [head, "| --- | --- |" + " --- |" * len(stats)]
     for key, what, share in MEASURES:
         lines.append(f"| {what} | {100 * share:.0f}% | " + " | ".join(_pct(s[key]) for s in stats.values()) + " |")
