@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import random
+import re
+from pathlib import Path
 
 import pytest
 
@@ -80,3 +82,25 @@ def test_archive_refuses_its_own_plan_folder(tmp_path, capsys):
     plan = plan_mod.merge_and_write(plan_mod.build_plan(tmp_path / "p", ["main"], 1, 1000, "small", "default", 1))
     assert reproduce_main(["--archive", str(plan.out), "--out", str(plan.out)]) == 2
     assert "--archive" in capsys.readouterr().err
+
+
+ARCHIVES = sorted((Path(__file__).resolve().parents[2] / "docs" / "runs").glob("*/plan.json"))
+
+
+@pytest.mark.parametrize("plan_file", ARCHIVES, ids=[p.parent.name for p in ARCHIVES])
+def test_the_committed_archives_reproduce_their_committed_reports(plan_file):
+    """docs/runs/<plan>/ is read by a fresh clone: every run its report counts must be in git (an ignore
+    rule once kept them out), and the claims and methods it gives must be what its results.md says."""
+    from higher_dist.reproduce.claims import claims, load_groups, method_table
+
+    plan = plan_mod.read_plan(plan_file.parent)
+    committed = (plan_file.parent / "results.md").read_text()
+    groups = load_groups(plan)
+    rows = claims(plan, groups)
+    assert rows
+    for row in rows:
+        line = f"| {row['claim']} | {row['paper']} | {row['ours']} |"
+        assert line in committed, f"{plan_file.parent.name}: the archive gives {line!r}, not its results.md"
+    for line in method_table(plan, groups)[2:]:
+        assert line in committed, f"{plan_file.parent.name}: the archive gives {line!r}, not its results.md"
+    assert all((plan_file.parent / p).exists() for p in re.findall(r"\]\((figures/[^)]+)\)", committed))
