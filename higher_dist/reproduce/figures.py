@@ -18,7 +18,7 @@ from higher_dist.analysis.drawing import pyplot
 from higher_dist.config import is_babyai_world
 from higher_dist.analysis.runs import GRID_POINTS, REPLAY_KEYS, NoRun, Run, is_number, load_run, replay_fractions
 from higher_dist.reproduce import replay_claims
-from higher_dist.reproduce.plan import GENERATOR_PAIRS, NOISE_LEVELS, TRIGGER_PAIRS, Plan, seeds_text
+from higher_dist.reproduce.plan import GENERATOR_PAIRS, NOISE_LEVELS, PAPER_GENERATOR_EXACT, TRIGGER_PAIRS, Plan, seeds_text
 
 EVAL_TRAIN, EVAL_HELDOUT = m.SUCCESS_EVAL_TRAIN, m.SUCCESS_EVAL_HELDOUT
 EVALUATIONS = (EVAL_TRAIN, EVAL_HELDOUT, m.SUCCESS_EVAL_TRAIN_AVERAGED, m.SUCCESS_EVAL_HELDOUT_AVERAGED)
@@ -259,5 +259,7 @@ def generator_figure(results: dict[int, list[dict]], path: Path) -> Path:
         values = [[r[key] for r in results[n] if is_number(r.get(key))] for n in pairs]
         ax.errorbar(pairs, [np.mean(v) for v in values], yerr=[np.std(v) for v in values], marker="o",
                     capsize=3, color=f"C{i}", label=label)
+    ax.plot(list(PAPER_GENERATOR_EXACT), list(PAPER_GENERATOR_EXACT.values()), "k*", markersize=11,
+            linestyle="none", label="the paper")
     ax.set_xticks(list(GENERATOR_PAIRS))
-    return _save(fig, ax, path)
+    return _save(fig, ax, path, legend_below=True)

@@ -38,6 +38,7 @@ PAPER_SEEDS = 5
 NOISE_LEVELS = (0.2, 0.5, 0.8)  # p = 0 is DQN+HER itself
 TRIGGER_PAIRS = (0, 1000, 2000)
 GENERATOR_PAIRS = (1000, 2000, 3000, 4000, 5000)
+PAPER_GENERATOR_EXACT = {1000: 0.18, 5000: 0.70}  # the paper's exact match from that many expert pairs
 GENERATOR_STEPS = 1500  # Adam steps per generator measurement (as `higher-bench generator`)
 GENERATOR_EVAL_PAIRS = 1000  # fresh pairs per goal set (seen, unseen)
 # What each invocation on one folder adds to plan.json's settings: the report names every command that

@@ -167,6 +167,27 @@ def test_a_generator_run_writes_its_exact_match_and_the_figure_draws_it(tmp_path
     assert draw_all(plan_mod.read_plan(plan.out))["generator_pairs"].stat().st_size > 5_000
 
 
+def test_the_generator_table_and_the_expert_pairs_verdict_read_every_seed(tmp_path):
+    import numpy as np
+
+    from higher_dist.reproduce.claims import claims, generator_table
+
+    plan = plan_mod.merge_and_write(build(tmp_path, ("generator",), seeds=2, generator_steps=30, profile="default"))
+    exact = {(1000, 0): (0.5, 0.4), (1000, 1): (0.7, 0.5), (5000, 0): (0.9, 0.8), (5000, 1): (0.7, 0.6)}
+    for run in plan.runs:
+        seen, unseen = exact.get((run.pairs, run.seed), (0.6, 0.6))
+        plan.path(run).mkdir(parents=True)
+        (plan.path(run) / "result.json").write_text(json.dumps(
+            {"pairs": run.pairs, "steps": run.steps, "seed": run.seed, "seen_exact_match": seen,
+             "unseen_exact_match": unseen}))
+    table = generator_table(plan)
+    assert table[2] == "| 1,000 | 2 | 30 | 60.0% +- 10.0 | 45.0% +- 5.0 |"
+    assert table[-1] == f"| 5,000 | 2 | 30 | 80.0% +- 10.0 | 70.0% +- {100 * np.std([0.8, 0.6]):.1f} |"
+    row = {r["claim"]: r for r in claims(plan)}["Generator from 5000 expert pairs: about 70% exact match"]
+    assert row["verdict"] == "holds" and "unseen 70.0%" in row["ours"] and "from 1000 pairs: unseen 45.0%" in row["ours"]
+    assert "far above" not in row["why"]  # 70% on held-out goals is the paper's own figure
+
+
 def test_a_second_reproduce_on_the_same_folder_is_refused(tmp_path):
     import subprocess
     import sys
