@@ -100,6 +100,21 @@ def _generator_state(groups: dict[str, Group]) -> str:
     return "; ".join(parts)
 
 
+def _relabelling_starts(groups: dict[str, Group], variant: str) -> str:
+    """When each seed's generator began to relabel (its gate opened): the frames the trigger really moves."""
+    group = groups.get(variant)
+    starts = []
+    for run in group.runs if group else []:
+        frames = next((r.get(m.FRAMES) for r in run.records if r.get(m.RELABEL_GATE_OPEN)), None)
+        starts.append(_short(frames) if frames is not None else
+                      f"not by {_short(max((r.get(m.FRAMES) or 0) for r in run.records))}")
+    return ", ".join(starts)
+
+
+def _short(frames: float) -> str:
+    return f"{frames / 1e6:.2f}M" if frames >= 1e6 else f"{int(frames) // 1000}k"
+
+
 def _all_right(p: float) -> str:
     """Why attribute noise costs more than p suggests: a relabel is right only if none of its 4 attributes
     was swapped (relabel.py NoisyExpertRelabel, the paper's definition)."""
@@ -206,6 +221,9 @@ def claims(plan: Plan, groups: dict[str, Group] | None = None) -> list[dict]:
         ok = spread <= max(0.10, 2 * std)
         row["verdict"] = "holds" if ok else "does not hold"
         row["why"] = f"spread {100 * spread:.1f} points"
+        if not ok:
+            row["why"] += "; relabelling started at " + "; ".join(
+                f"{n} pairs: {_relabelling_starts(groups, f'higher-trigger{n}')} frames" for n in present)
         row["budget"] = list(present.values())
     rows.append(row)
 

@@ -206,14 +206,16 @@ def test_a_second_reproduce_on_the_same_folder_is_refused(tmp_path):
     assert (tmp_path / "reproduce.pid").read_text() == str(__import__("os").getpid())
 
 
-def _write_run(plan, name, final, frames=1000, generator=None):
+def _write_run(plan, name, final, frames=1000, generator=None, gate_from=None):
     run = next(r for r in plan.runs if r.name == name)
     path = plan.path(run)
     path.mkdir(parents=True)
     (path / "config.json").write_text(json.dumps({"preset": run.preset, "seed": run.seed, "world": {"name": "small"}}))
     rows = [{"time": t, "frames": frames * t // 10, "success_rate_eval_train": final * t / 10,
              "success_rate_eval_heldout": final / 2, "replay_success": 5, "replay_timeout": 50,
-             **({"generator_val_accuracy": generator * t / 10} if generator is not None else {})} for t in range(1, 11)]
+             **({"generator_val_accuracy": generator * t / 10} if generator is not None else {}),
+             **({"relabel_gate_open": frames * t // 10 >= gate_from} if gate_from is not None else {})}
+            for t in range(1, 11)]
     (path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
 
 
@@ -225,8 +227,9 @@ def test_noise_and_trigger_figures_and_their_verdicts(tmp_path):
     finals = {"dqn-s0": 0.05, "her-s0": 0.5, "reward-s0": 0.42, "noisy-her-p0.2-s0": 0.45,
               "noisy-her-p0.5-s0": 0.3, "noisy-her-p0.8-s0": 0.2, "higher-trigger0-s0": 0.4,
               "higher-trigger1000-s0": 0.3, "higher-trigger2000-s0": 0.1}
+    gates = {"higher-trigger0-s0": 100_000, "higher-trigger1000-s0": 600_000, "higher-trigger2000-s0": None}
     for name, final in finals.items():
-        _write_run(plan, name, final)
+        _write_run(plan, name, final, **({"frames": 1_000_000, "gate_from": gates[name]} if name in gates else {}))
     _write_run(plan, "higher-s0", 0.45, generator=0.8)
     figures = draw_all(plan)
     assert {"success_train", "noise", "trigger", "generator_accuracy", "replay_composition"} <= set(figures)
@@ -237,6 +240,9 @@ def test_noise_and_trigger_figures_and_their_verdicts(tmp_path):
     assert rows["HER with 80% noise still beats DQN"]["verdict"] == "holds"
     trigger = rows["The trigger point (0, 1000, 2000 pairs) makes no difference"]
     assert trigger["verdict"] == "does not hold" and "spread 30.0 points" in trigger["why"]
+    # Why: when each trigger's relabelling really began (the gate opening), or that it never did.
+    assert ("relabelling started at 0 pairs: 100k frames; 1000 pairs: 600k frames; 2000 pairs: not by 1.00M frames"
+            in trigger["why"])
     assert rows["DQN+HIGhER nearly matches DQN+HER"]["verdict"] == "holds"  # 45% against 50%
     assert rows["HIGhER's generator reaches 78% at 5M frames"]["verdict"] == "holds"
     assert "measured at 1,000 frames" in rows["DQN+reward reaches about 40%"]["why"]
