@@ -28,7 +28,7 @@ from higher_dist.reproduce.figures import (EVAL_HELDOUT, EVAL_TRAIN, FINAL_EVALS
                                            load_groups)
 from higher_dist.reproduce.plan import (NOISE_LEVELS, PAPER_FRAMES, PAPER_GENERATOR_EXACT, PAPER_SEEDS, TRIGGER_PAIRS,
                                         Plan, check_configs, seeds_text)
-from higher_dist.reproduce import replay_claims
+from higher_dist.reproduce import replay_claims, trigger_claims
 from higher_dist.reproduce.status import frames_done, measured_fps
 from higher_dist.world.batched import batched_world
 from higher_dist.world.spec import RUNNING, SUCCESS, WorldSpec
@@ -105,7 +105,7 @@ def _relabelling_starts(groups: dict[str, Group], variant: str) -> str:
     group = groups.get(variant)
     starts = []
     for run in group.runs if group else []:
-        frames = next((r.get(m.FRAMES) for r in run.records if r.get(m.RELABEL_GATE_OPEN)), None)
+        frames = trigger_claims.gate_opened(run)
         starts.append(_short(frames) if frames is not None else
                       f"not by {_short(max((r.get(m.FRAMES) or 0) for r in run.records))}")
     return ", ".join(starts)
@@ -379,6 +379,12 @@ def write_results(plan: Plan, figures: dict[str, Path]) -> Path:
     if composition:
         lines += ["## The replay's composition", "", replay_claims.DEFINITION, "",
                   *composition, ""]
+    trigger_runs = [r for r in plan.runs if r.variant.startswith("higher-trigger")]
+    trigger = trigger_claims.table({n: groups[f"higher-trigger{n}"].runs for n in TRIGGER_PAIRS
+                                    if f"higher-trigger{n}" in groups},
+                                   max((r.frames for r in trigger_runs), default=0))
+    if trigger:
+        lines += ["## The trigger point, per run", "", trigger_claims.CAPTION, "", *trigger, ""]
     generator = generator_table(plan)
     if generator:
         lines += ["## The generator from expert pairs", "", *generator, ""]
