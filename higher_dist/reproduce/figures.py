@@ -173,6 +173,11 @@ def draw_all(plan: Plan) -> dict[str, Path]:
         written["replay_vs_paper"] = replay_vs_paper_figure(groups["higher"], out / "replay_vs_paper.png")
     if any(f"noisy-her-p{p}" in groups for p in NOISE_LEVELS):
         written["noise"] = noise_figure(groups, out / "noise.png")
+        noisy = [groups[v] for v in ["dqn", "her", *(f"noisy-her-p{p}" for p in NOISE_LEVELS)] if v in groups]
+        fig, ax = _figure("DQN+HER with attribute noise p, over training", "environment frames",
+                          "greedy success, training goals")
+        _curves(ax, noisy, EVAL_TRAIN)
+        written["noise_curves"] = _save(fig, ax, out / "noise_curves.png")
     triggers = [groups[f"higher-trigger{n}"] for n in TRIGGER_PAIRS if f"higher-trigger{n}" in groups]
     if triggers:
         fig, ax = _figure("Generator switched on after N pairs", "environment frames", "greedy success, training goals")

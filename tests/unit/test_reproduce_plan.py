@@ -232,7 +232,7 @@ def test_noise_and_trigger_figures_and_their_verdicts(tmp_path):
         _write_run(plan, name, final, **({"frames": 1_000_000, "gate_from": gates[name]} if name in gates else {}))
     _write_run(plan, "higher-s0", 0.45, generator=0.8)
     figures = draw_all(plan)
-    assert {"success_train", "noise", "trigger", "generator_accuracy", "replay_composition"} <= set(figures)
+    assert {"success_train", "noise", "noise_curves", "trigger", "generator_accuracy", "replay_composition"} <= set(figures)
     rows = {row["claim"]: row for row in claims(plan)}
     noise = rows["HER keeps 80% of its performance at 50% noise"]
     assert noise["verdict"] == "does not hold" and "ratio 0.60" in noise["why"]  # 0.3 / 0.5
