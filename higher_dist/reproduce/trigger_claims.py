@@ -7,7 +7,8 @@ from each run's records:
 - pairs: `relabel_dataset_size` at CHECKPOINTS (shares of the runs' budget), from the record nearest that
   frame;
 - exploring success at SUCCESS_AT of the budget, the same way;
-- relabelling began: the first record with `relabel_gate_open`; "at once" within AT_ONCE_FRAMES.
+- relabelling began: the first record with `relabel_gate_open`; "at once" within AT_ONCE_FRAMES; "not
+  by F" where F is the run's last record.
 An archived run keeps one record per 10k frames, so a frame read from the archive is up to 10k late.
 """
 from __future__ import annotations
@@ -45,10 +46,11 @@ def gate_opened(run: Run) -> float | None:
     return next((float(r[m.FRAMES]) for r in run.records if r.get(m.RELABEL_GATE_OPEN) and m.FRAMES in r), None)
 
 
-def _began(run: Run, budget: float) -> str:
+def _began(run: Run) -> str:
     frames = gate_opened(run)
-    if frames is None:
-        return f"not by {frames_text(budget)}"
+    if frames is None:  # by the run's own last record: a run still going has not reached the budget
+        last = max((float(r[m.FRAMES]) for r in run.records if m.FRAMES in r), default=0.0)
+        return f"not by {frames_text(round(last, -4))}"
     return "at once" if frames <= AT_ONCE_FRAMES else frames_text(frames // 1000 * 1000)
 
 
@@ -69,6 +71,6 @@ def table(groups: dict[int, list[Run]], budget: float) -> list[str]:
             lines.append(f"| {pairs} pairs | {run.seed} | "
                          + " | ".join("-" if c is None else f"{c:,.0f}" for c in counts) + " | "
                          + ", ".join("-" if s is None else f"{100 * s:.0f}%" for s in success)
-                         + f" | {_began(run, budget)} |")
+                         + f" | {_began(run)} |")
     return lines
 

@@ -37,7 +37,7 @@ def test_each_cell_is_the_record_nearest_its_frame_and_the_gate_its_first_openin
     assert rows[1][2:8] == ["101", "201", "401", "601", "801", "901"]
     assert rows[1][8] == "4%, 10%, 20%"  # 0.02 + f / 5e6 at 101k, 401k, 901k
     assert rows[1][9] == "501k"  # the first record at or past 432,100 frames
-    assert rows[2][2] == "7" and rows[2][9] == "not by 1M"
+    assert rows[2][2] == "7" and rows[2][9] == "not by 990k"  # its own last record, not the budget
 
 
 def test_the_columns_follow_the_runs_budget_and_a_run_without_the_metric_reads_a_dash():
