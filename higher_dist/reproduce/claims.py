@@ -14,8 +14,6 @@ has no held-out goals, so its runs record `success_rate_eval_train` only and no 
 """
 from __future__ import annotations
 
-import os
-import platform
 import time
 from pathlib import Path
 
@@ -29,7 +27,7 @@ from higher_dist.reproduce.figures import (EVAL_HELDOUT, EVAL_TRAIN, FINAL_EVALS
 from higher_dist.reproduce.plan import (NOISE_LEVELS, PAPER_FRAMES, PAPER_GENERATOR_EXACT, PAPER_SEEDS, TRIGGER_PAIRS,
                                         Plan, check_configs, seeds_text)
 from higher_dist.reproduce import replay_claims, trigger_claims
-from higher_dist.reproduce.status import frames_done, measured_fps
+from higher_dist.reproduce.status import machine, run_time
 from higher_dist.world.batched import batched_world
 from higher_dist.world.spec import RUNNING, SUCCESS, WorldSpec
 
@@ -109,6 +107,11 @@ def _relabelling_starts(groups: dict[str, Group], variant: str) -> str:
         starts.append(_short(frames) if frames is not None else
                       f"not by {_short(max((r.get(m.FRAMES) or 0) for r in run.records))}")
     return ", ".join(starts)
+
+
+def _difference_se(a: dict, b: dict) -> float:
+    """The standard error of a difference of two means over seeds; a side with one seed adds nothing."""
+    return float(np.sqrt(sum(np.var(s["values"], ddof=1) / s["n"] for s in (a, b) if s["n"] > 1)))
 
 
 def _short(frames: float) -> str:
@@ -200,11 +203,12 @@ def claims(plan: Plan, groups: dict[str, Group] | None = None) -> list[dict]:
 
     row = {"claim": "HER with 80% noise still beats DQN", "paper": "above DQN",
            "ours": (f"p=0.8: {fmt(noisy[0.8])}; DQN: {fmt(dqn)}" if noisy[0.8] else "not measured"),
-           "rule": "mean above DQN's mean"}
+           "rule": "mean above DQN's by more than 2 standard errors of the difference (over seeds)"}
     if noisy[0.8] and dqn:
-        ok = noisy[0.8]["mean"] > dqn["mean"]
-        row["verdict"] = "holds" if ok else "does not hold"
-        row["why"] = f"difference {100 * (noisy[0.8]['mean'] - dqn['mean']):+.1f} points"
+        diff, se = noisy[0.8]["mean"] - dqn["mean"], _difference_se(noisy[0.8], dqn)
+        ok = diff > 2 * se
+        row["verdict"] = "holds" if ok else "does not hold" if diff <= 0 else "inconclusive"
+        row["why"] = f"difference {100 * diff:+.1f} points, 2 standard errors {200 * se:.1f}"
         if not ok:
             row["why"] += f"; {_all_right(0.8)}"
         row["budget"] = [noisy[0.8], dqn]
@@ -296,42 +300,6 @@ def method_table(plan: Plan, groups: dict[str, Group] | None = None) -> list[str
 def _eval_episodes(plan: Plan) -> int:
     """Greedy episodes per goal set of the plan's runs, from their configs as higher-cluster builds them."""
     return min((c.eval.episodes for c in check_configs(plan).values()), default=0) or 1
-
-
-def machine() -> str:
-    """Cores, CPU model, memory, accelerator and versions: what a reader needs to compare figures."""
-    import torch  # the learner's library; its version and device are part of the result
-
-    model = ""
-    try:
-        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                      if line.startswith("model name")), "")
-    except OSError:
-        pass
-    try:
-        memory = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2 ** 30:.0f} GiB"
-    except (ValueError, OSError, AttributeError):
-        memory = ""
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
-    return (f"{os.cpu_count()} cores ({model or platform.machine()}){memory}, {gpu}, Python "
-            f"{platform.python_version()}, torch {torch.__version__}")
-
-
-def run_time(plan: Plan) -> list[str]:
-    """One line: the cluster runs' frame rates and minutes per run, measured from their own metrics."""
-    fps = {}
-    for run in plan.runs:
-        if run.kind == "cluster" and (plan.path(run) / "metrics.jsonl").exists():
-            value = measured_fps(plan.path(run))
-            if value:
-                fps[run.name] = (value, frames_done(run, plan.path(run)))
-    if not fps:
-        return []
-    rates = [v for v, _ in fps.values()]
-    minutes = [f / v / 60 for v, f in fps.values()]
-    return [f"Time: {len(fps)} cluster runs, {plan.settings.get('parallel', 1)} at a time, ran at {min(rates):,.0f}-"
-            f"{max(rates):,.0f} env frames/s each, {min(minutes):.0f}-{max(minutes):.0f} minutes per run "
-            f"({sum(minutes) / 60:.1f} run-hours in all)."]
 
 
 def budgets(plan: Plan) -> str:

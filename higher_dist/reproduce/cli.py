@@ -15,10 +15,10 @@ from higher_dist.config_presets import make_config
 from higher_dist.paths import ensure_folder
 from higher_dist.reproduce import plan as plan_mod
 from higher_dist.reproduce.archive import archive as archive_runs
-from higher_dist.reproduce.claims import machine, write_results
+from higher_dist.reproduce.claims import write_results
 from higher_dist.reproduce.executor import Executor
 from higher_dist.reproduce.figures import draw_all
-from higher_dist.reproduce.status import estimate, human_seconds
+from higher_dist.reproduce.status import estimate, human_seconds, machine
 from higher_dist.reproduce.view import make_view
 
 

@@ -1,4 +1,4 @@
-"""Where each run of a plan stands on disk, and what the rest will cost on this machine.
+"""Where each run of a plan stands on disk, what the rest will cost on this machine, and the machine itself.
 
 States: `done` (a cluster run whose metrics reached its budget; a generator run with its result.json),
 `resumable` (a learner checkpoint: an interrupted run), `stale` (started, but killed before its first
@@ -15,6 +15,8 @@ for more samples per frame is assumed proportionally slower.
 from __future__ import annotations
 
 import json
+import os
+import platform
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -156,3 +158,39 @@ def human_seconds(s: float) -> str:
     if s < 3 * 86400:
         return f"{s / 3600:.1f} h"
     return f"{s / 86400:.1f} days"
+
+
+def machine() -> str:
+    """Cores, CPU model, memory, accelerator and versions: what a reader needs to compare figures."""
+    import torch  # the learner's library; its version and device are part of the result
+
+    model = ""
+    try:
+        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                      if line.startswith("model name")), "")
+    except OSError:
+        pass
+    try:
+        memory = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2 ** 30:.0f} GiB"
+    except (ValueError, OSError, AttributeError):
+        memory = ""
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return (f"{os.cpu_count()} cores ({model or platform.machine()}){memory}, {gpu}, Python "
+            f"{platform.python_version()}, torch {torch.__version__}")
+
+
+def run_time(plan: Plan) -> list[str]:
+    """One line: the cluster runs' frame rates and minutes per run, measured from their own metrics."""
+    fps = {}
+    for run in plan.runs:
+        if run.kind == "cluster" and (plan.path(run) / "metrics.jsonl").exists():
+            value = measured_fps(plan.path(run))
+            if value:
+                fps[run.name] = (value, frames_done(run, plan.path(run)))
+    if not fps:
+        return []
+    rates = [v for v, _ in fps.values()]
+    minutes = [f / v / 60 for v, f in fps.values()]
+    return [f"Time: {len(fps)} cluster runs, {plan.settings.get('parallel', 1)} at a time, ran at {min(rates):,.0f}-"
+            f"{max(rates):,.0f} env frames/s each, {min(minutes):.0f}-{max(minutes):.0f} minutes per run "
+            f"({sum(minutes) / 60:.1f} run-hours in all)."]

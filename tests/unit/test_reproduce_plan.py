@@ -265,6 +265,24 @@ def test_dqn_near_random_is_judged_per_seed(tmp_path):
             assert "seeds disagree" in row["why"] and f"{100 * (rnd + 0.08):.1f}%" in row["why"]
 
 
+def test_noise_beating_dqn_needs_a_difference_beyond_the_seeds_spread(tmp_path):
+    """A noisy HER a fraction of a point above DQN, where the seeds scatter by more, beats nothing: the
+    verdict weighs the difference of the means against its standard error over seeds."""
+    from higher_dist.reproduce.claims import claims
+
+    for noisy, dqn, verdict in (((0.30, 0.32), (0.01, 0.03), "holds"), ((0.02, 0.06), (0.01, 0.05), "inconclusive"),
+                                ((0.0, 0.01), (0.02, 0.03), "does not hold")):
+        out = tmp_path / verdict.replace(" ", "-")
+        plan = plan_mod.merge_and_write(build(out, ("main", "noise"), seeds=2, frames=1000,
+                                              methods=["dqn", "noisy-her-p0.8"]))
+        for seed in range(2):
+            _write_run(plan, f"dqn-s{seed}", dqn[seed])
+            _write_run(plan, f"noisy-her-p0.8-s{seed}", noisy[seed])
+        row = next(r for r in claims(plan) if r["claim"] == "HER with 80% noise still beats DQN")
+        assert row["verdict"] == verdict, (noisy, dqn, row)
+        assert "2 standard errors" in row["why"]
+
+
 def test_print_config_prints_every_cluster_run_resolved_and_writes_nothing(tmp_path, capsys):
     from higher_dist.reproduce.cli import main as reproduce_main
 
