@@ -71,6 +71,7 @@ class LearnerRole:
         self.stop_reason = ""
         self.started = time.time()
         self.updates_rate = RateMeter()
+        self.resumed = resume
         if resume:
             self._resume()
         elif self.rd.checkpoint_path("learner").exists():
@@ -176,6 +177,10 @@ class LearnerRole:
         for s in (signal.SIGINT, signal.SIGTERM):
             signal.signal(s, lambda *_: stop.append(1))
         self.publish_weights()
+        if self.resumed:
+            # The curve's first point after a resume is the checkpoint itself, written before any new
+            # experience is taken, so where the run went on from is on record rather than inferred.
+            self.rd.append_metrics(self.record())
         republish, telemetry = Every(WEIGHTS_REPUBLISH_S), Every(TELEMETRY_EVERY_S)
         metrics, checkpoints = Every(self.cfg.stats_every_s), Every(self.cfg.checkpoint_every_s)
         poller = zmq.Poller()
