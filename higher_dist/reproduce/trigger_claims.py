@@ -4,8 +4,8 @@ The trigger's verdict (claims.py) compares end points; this table shows what the
 Before any relabel the generator's only positive pairs are the agent's own successes, so a run waiting
 for 1000 or 2000 pairs depends on how often its exploring policy succeeds (`success_rate_train`). Read
 from each run's records:
-- pairs: `relabel_dataset_size` at CHECKPOINTS (shares of the runs' budget), from the record nearest that
-  frame;
+- pairs: `relabel_dataset_size` at CHECKPOINTS (shares of the longest run's budget), from the record
+  nearest that frame, "-" past a run's own budget;
 - exploring success at SUCCESS_AT of the budget, the same way;
 - relabelling began: the first record with `relabel_gate_open`; "at once" within AT_ONCE_FRAMES; "not
   by F" where F is the run's last record.
@@ -33,10 +33,17 @@ def frames_text(frames: float) -> str:
     return f"{frames / 1e3:g}k"
 
 
+def _budget(run: Run) -> float | None:
+    """The run's own frame budget, as its records state it (None where they do not)."""
+    return next((float(r[m.FRAMES_BUDGET]) for r in run.records if r.get(m.FRAMES_BUDGET)), None)
+
+
 def _at(run: Run, key: str, frames: float) -> float | None:
-    """The value of `key` in the record whose frames are nearest `frames`."""
+    """The value of `key` in the record whose frames are nearest `frames`; None past the run's own budget
+    (a 1M run in a table of 2M runs has no 1.6M)."""
     x, y = run.series(key)
-    if len(x) == 0:
+    budget = _budget(run)
+    if len(x) == 0 or (budget is not None and frames > budget * 1.001):
         return None
     return float(y[int(np.argmin(np.abs(x - frames)))])
 

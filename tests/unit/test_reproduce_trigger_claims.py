@@ -47,3 +47,16 @@ def test_the_columns_follow_the_runs_budget_and_a_run_without_the_metric_reads_a
     row = _cells(lines[2])
     assert row[2:8] == ["-"] * 6 and row[8] == "50%, 50%, 50%" and row[9] == "not by 2M"
     assert trigger_claims.table({}, 1_000_000) == []
+
+
+def test_a_shorter_run_reads_a_dash_past_its_own_budget_in_a_table_of_longer_runs():
+    def rows(budget, end):
+        return [{"frames": f, "frames_budget": budget, "relabel_dataset_size": f // 1000, "success_rate_train": 0.3,
+                 "relabel_gate_open": False} for f in range(0, end + 1, 10_000)]
+    short, full = _run(0, rows(1_000_000, 1_000_000)), _run(1, rows(2_000_000, 2_000_000))
+    lines = trigger_claims.table({0: [short], 2000: [full]}, 2_000_000)
+    short_row, full_row = _cells(lines[2]), _cells(lines[3])
+    # columns 200k, 400k, 800k, 1.2M, 1.6M, 2M: the 1M run stops at 800k, the 2M run reads all six
+    assert short_row[2:8] == ["200", "400", "800", "-", "-", "-"]
+    assert full_row[2:8] == ["200", "400", "800", "1,200", "1,600", "2,000"]
+    assert short_row[8] == "30%, 30%, -" and short_row[9] == "not by 1M"
