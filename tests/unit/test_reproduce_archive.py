@@ -104,3 +104,18 @@ def test_the_committed_archives_reproduce_their_committed_reports(plan_file):
     for line in method_table(plan, groups)[2:]:
         assert line in committed, f"{plan_file.parent.name}: the archive gives {line!r}, not its results.md"
     assert all((plan_file.parent / p).exists() for p in re.findall(r"\]\((figures/[^)]+)\)", committed))
+
+
+def test_the_generated_blocks_of_results_md_are_their_archives_reports():
+    """docs/results.md copies its tables from the archives' reports between `<!-- gen:NAME -->` markers
+    (`gen:paper-NAME` from claims-paper, the others from claims-default): each copied line must still be
+    in that report, so a regenerated report and a stale results.md cannot both be committed."""
+    docs = Path(__file__).resolve().parents[2] / "docs"
+    text = (docs / "results.md").read_text()
+    blocks = re.findall(r"<!-- gen:([\w-]+) -->\n(.*?)<!-- /gen -->", text, re.S)
+    assert {"claims", "methods"} <= {name for name, _ in blocks}
+    for name, body in blocks:
+        source = docs / "runs" / ("claims-paper" if name.startswith("paper-") else "claims-default") / "results.md"
+        report = source.read_text()
+        for line in filter(None, body.splitlines()):
+            assert line.strip() in report, f"results.md block {name!r}: {line[:80]!r} is not in {source}"
