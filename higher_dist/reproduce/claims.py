@@ -75,6 +75,9 @@ def _budget_note(stats_list: list[dict | None]) -> str:
     frames = min(s["frames"] for s in present)
     seeds = min(s["n"] for s in present)
     notes = []
+    if max(s["frames"] for s in present) > 1.1 * frames:
+        notes.append(f"the compared runs reached {frames:,} to {max(s['frames'] for s in present):,} frames: "
+                     "their end points are not at the same frame")
     if frames < 0.9 * PAPER_FRAMES:
         notes.append(f"measured at {frames:,} frames, {100 * frames / PAPER_FRAMES:.2g}% of the paper's {PAPER_FRAMES:,}: "
                      "curves still rising there are not the paper's end points")

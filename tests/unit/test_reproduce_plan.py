@@ -283,6 +283,20 @@ def test_noise_beating_dqn_needs_a_difference_beyond_the_seeds_spread(tmp_path):
         assert "2 standard errors" in row["why"]
 
 
+def test_a_comparison_of_runs_at_different_budgets_says_so(tmp_path):
+    """A trigger at 2000 pairs run on to 2M frames beside triggers stopped at 1M: the verdict's why says
+    the end points are not at the same frame."""
+    from higher_dist.reproduce.claims import claims
+
+    plan = plan_mod.merge_and_write(build(tmp_path, ("trigger",), seeds=1, frames=1000))
+    for name, final, frames in (("higher-trigger0-s0", 0.4, 1_000_000), ("higher-trigger1000-s0", 0.3, 1_000_000),
+                                ("higher-trigger2000-s0", 0.35, 2_000_000)):
+        _write_run(plan, name, final, frames=frames, gate_from=0)
+    row = next(r for r in claims(plan) if r["claim"].startswith("The trigger point"))
+    assert "reached 1,000,000 to 2,000,000 frames: their end points are not at the same frame" in row["why"]
+    assert "2000 pairs: 0.35" not in row["ours"] and "(1 seed, 2,000,000 frames)" in row["ours"]
+
+
 def test_print_config_prints_every_cluster_run_resolved_and_writes_nothing(tmp_path, capsys):
     from higher_dist.reproduce.cli import main as reproduce_main
 
