@@ -85,6 +85,7 @@ bench-gpu: install
 # docs/configuration.md and docs/metrics.md, from config.py and metrics.py (a unit test fails when they drift).
 docs: install
 	$(BIN)/python -m higher_dist.docs_gen
+	$(BIN)/python -m higher_dist.reproduce.results_blocks
 
 lint: install
 	$(BIN)/python -m compileall -q higher_dist tests
