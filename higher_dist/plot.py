@@ -121,16 +121,13 @@ CURVE_COLUMNS = (("frames", m.FRAMES, 0), ("minutes", m.ELAPSED_S, 1), ("updates
 
 
 def curve_rows(run: Run) -> list[dict[str, str]]:
-    """The run's record at each new greedy evaluation (and its last record), as text cells. Every record
-    repeats the latest evaluation: a new one is told by its frames (EVAL_FRAMES), or by new values in
-    records that lack them (the single-process runner's)."""
-    rows, last_eval = [], None
-    for i, r in enumerate(run.records):
-        scores = (r.get(m.SUCCESS_EVAL_TRAIN), r.get(m.SUCCESS_EVAL_HELDOUT))
-        evaluation = (r.get(m.EVAL_FRAMES), *scores)
-        if (evaluation == last_eval or scores == (None, None)) and i != len(run.records) - 1:
-            continue
-        last_eval = evaluation
+    """The run's record at each greedy evaluation (Run.evaluations: each once, the first record that
+    carried it), and its last record, as text cells."""
+    records = [e.record for e in run.evaluations()]
+    if run.records and not any(r is run.records[-1] for r in records):
+        records.append(run.records[-1])
+    rows = []
+    for r in records:
         row = {}
         for column, key, digits in CURVE_COLUMNS:
             value = r.get(key) if key else (r.get(m.UPDATES, 0) / r[m.FRAMES] if is_number(r.get(m.FRAMES)) and r[m.FRAMES] else None)

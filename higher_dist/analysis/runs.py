@@ -18,10 +18,25 @@ from higher_dist import metrics as m
 GRID_POINTS = 200  # points of the common frames grid that seeds' curves are interpolated onto
 REPLAY_KEYS = (("replay_success", "success", "tab:green"), ("replay_wrong_pick", "wrong pick", "tab:red"),
                ("replay_timeout", "time-out", "tab:olive"), ("replay_relabelled", "relabelled", "tab:cyan"))
+# The results of one greedy evaluation: a record carrying a number under any of them carries an evaluation.
+EVALUATION_KEYS = (m.SUCCESS_EVAL_TRAIN, m.SUCCESS_EVAL_HELDOUT, m.SUCCESS_EVAL_TRAIN_AVERAGED,
+                   m.SUCCESS_EVAL_HELDOUT_AVERAGED)
 
 
 class NoRun(Exception):
     """A directory given on the command line holds no run."""
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One greedy evaluation of a run: the env frames its weights had seen, and the first record that
+    carried it (whose elapsed_s, updates, ... are those of the moment its result came out)."""
+    frames: int
+    record: dict[str, Any]
+
+    def value(self, key: str) -> float | None:
+        v = self.record.get(key)
+        return float(v) if is_number(v) else None
 
 
 @dataclass
@@ -45,6 +60,30 @@ class Run:
             return np.empty(0), np.empty(0)
         arr = np.asarray(pts)
         return arr[:, 0], arr[:, 1]
+
+    def evaluations(self) -> list[Evaluation]:
+        """Each greedy evaluation once, sorted by its frames. Every record repeats the latest evaluation, so:
+        - a record whose evaluation (EVAL_FRAMES and EVALUATION_KEYS' values) equals that of the evaluation
+          record before it repeats that evaluation, which keeps its first record;
+        - an evaluation's frames are its EVAL_FRAMES; records without them (the single-process runner's,
+          which evaluates right before it records) are counted at their own frames;
+        - of several evaluations at one frame count, the last one kept: a run resumed from a checkpoint
+          records again the frames after it and evaluates them again, and only those later results belong
+          to the run that goes on (the earlier ones are of the weights the resume threw away)."""
+        by_frames: dict[int, Evaluation] = {}
+        previous = None
+        for r in self.records:
+            values = tuple(r.get(k) if is_number(r.get(k)) else None for k in EVALUATION_KEYS)
+            if values == (None,) * len(values):
+                continue
+            identity = (r.get(m.EVAL_FRAMES), values)
+            if identity == previous:
+                continue
+            previous = identity
+            frames = r.get(m.EVAL_FRAMES) if is_number(r.get(m.EVAL_FRAMES)) else r.get(m.FRAMES)
+            if is_number(frames):
+                by_frames[int(frames)] = Evaluation(int(frames), r)
+        return [by_frames[f] for f in sorted(by_frames)]
 
     def has(self, key: str) -> bool:
         return any(is_number(r.get(key)) for r in self.records)

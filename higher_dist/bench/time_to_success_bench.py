@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from higher_dist import metrics as names
+from higher_dist.analysis.runs import Run
 from higher_dist.rundir import read_metrics
 from higher_dist.bench.cluster_bench import stop_group
 from higher_dist.launch.local_cluster import cli_argv
@@ -31,20 +32,12 @@ SUCCESS_KEYS = {"online": names.SUCCESS_EVAL_TRAIN, "averaged": names.SUCCESS_EV
 
 
 def evaluations(records: list[dict], key: str = names.SUCCESS_EVAL_TRAIN) -> list[dict]:
-    """One entry per evaluation, in order: its frames (those the evaluated weights had seen), its success,
-    and the run's elapsed seconds at the first record that carried it (every record repeats the latest)."""
-    out: list[dict] = []
-    seen: set[int] = set()
-    for r in records:
-        value = r.get(key)
-        if value is None:
-            continue
-        frames = int(r.get(names.EVAL_FRAMES, r.get(names.FRAMES, 0)))
-        if frames in seen:
-            continue
-        seen.add(frames)
-        out.append({"frames": frames, "success": float(value), "seconds": float(r.get(names.ELAPSED_S, 0.0))})
-    return out
+    """One entry per evaluation that scored `key`, each once and in order of frames (Run.evaluations): its
+    frames (those the evaluated weights had seen), its success, and the run's elapsed seconds at the first
+    record that carried it."""
+    run = Run(path=Path(), preset="", seed=None, world="", records=records)  # only its records are read
+    return [{"frames": e.frames, "success": e.value(key), "seconds": float(e.record.get(names.ELAPSED_S, 0.0))}
+            for e in run.evaluations() if e.value(key) is not None]
 
 
 def crossings(records: list[dict], levels: list[float], key: str = names.SUCCESS_EVAL_TRAIN,

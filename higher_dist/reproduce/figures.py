@@ -82,14 +82,11 @@ def std_band(curves: list[tuple[np.ndarray, np.ndarray]]):
 
 def final(run: Run, key: str) -> float | None:
     """A run's end point for `key`. For a greedy evaluation: the mean of the run's last FINAL_EVALS
-    evaluations (each record carries the latest one and the frames it was taken at, `eval_frames`), as
-    one evaluation swings 5-10 points late in a run; otherwise the latest value."""
-    evals = {}
-    for r in run.records if key in EVALUATIONS else ():
-        if is_number(r.get(key)) and is_number(r.get(m.EVAL_FRAMES)):
-            evals[float(r[m.EVAL_FRAMES])] = float(r[key])
+    evaluations (Run.evaluations: each once), as one evaluation swings 5-10 points late in a run;
+    otherwise the latest value."""
+    evals = [v for v in (e.value(key) for e in run.evaluations()) if v is not None] if key in EVALUATIONS else []
     if evals:
-        return float(np.mean([evals[f] for f in sorted(evals)[-FINAL_EVALS:]]))
+        return float(np.mean(evals[-FINAL_EVALS:]))
     _, y = run.series(key)
     return float(y[-1]) if len(y) else None
 
