@@ -88,9 +88,10 @@ def test_the_report_of_a_level_needs_no_held_out_evaluations(tmp_path):
         path = plan.path(run)
         path.mkdir(parents=True)
         (path / "config.json").write_text(json.dumps({"preset": run.preset, "seed": run.seed, "world": {"name": LEVEL}}))
-        rows = [{"time": t, "frames": 100 * t, "success_rate_train": 0.1,
-                 "success_rate_eval_train": finals[run.name] * t / 10, "replay_success": 5, "replay_timeout": 50}
-                for t in range(1, 11)]
+        # an evaluation in each record, the last three at the run's final value (its end point is their mean)
+        rows = [{"time": t, "frames": 100 * t, "success_rate_train": 0.1, "eval_frames": 100 * t,
+                 "success_rate_eval_train": finals[run.name] * min(t, 8) / 8, "replay_success": 5,
+                 "replay_timeout": 50} for t in range(1, 11)]
         (path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     figures = draw_all(plan)
     assert {"success_train", "trigger", "replay_composition"} <= set(figures) and "success_heldout" not in figures

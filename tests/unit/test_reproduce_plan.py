@@ -139,14 +139,15 @@ def test_higher_plot_on_a_plan_folder_draws_the_plans_figures_and_table(tmp_path
         path = plan.path(plan.runs[seed])
         path.mkdir(parents=True)
         (path / "config.json").write_text(json.dumps({"preset": "dqn", "seed": seed, "world": {"name": "small"}}))
-        rows = [{"time": t, "frames": 100 * t, "success_rate_train": 0.1, "success_rate_eval_train": level * t / 10,
-                 "success_rate_eval_heldout": level / 2, "replay_success": 10, "replay_timeout": 90 + t}
-                for t in range(1, 11)]
+        # an evaluation in each record, the last three at `level` (a run's end point is their mean)
+        rows = [{"time": t, "frames": 100 * t, "success_rate_train": 0.1, "eval_frames": 100 * t,
+                 "success_rate_eval_train": level * min(t, 8) / 8, "success_rate_eval_heldout": level / 2,
+                 "replay_success": 10, "replay_timeout": 90 + t} for t in range(1, 11)]
         (path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     assert plot_main([str(plan.out)]) == 0
     assert (plan.out / "figures" / "success_train.png").stat().st_size > 5_000
     results = (plan.out / "results.md").read_text()
-    # The latest evaluations are 0.2 and 0.4: mean 30.0%, std 10.0 over the two seeds.
+    # The last evaluations are 0.2 and 0.4: mean 30.0%, std 10.0 over the two seeds.
     assert "| DQN | 30.0% +- 10.0 (2 seeds, 1,000 frames) | 15.0% +- 5.0 (2 seeds, 1,000 frames) |" in results
 
 
@@ -211,7 +212,9 @@ def _write_run(plan, name, final, frames=1000, generator=None, gate_from=None):
     path = plan.path(run)
     path.mkdir(parents=True)
     (path / "config.json").write_text(json.dumps({"preset": run.preset, "seed": run.seed, "world": {"name": "small"}}))
-    rows = [{"time": t, "frames": frames * t // 10, "success_rate_eval_train": final * t / 10,
+    # an evaluation in each record, the last three at `final` (a run's end point is their mean)
+    rows = [{"time": t, "frames": frames * t // 10, "eval_frames": frames * t // 10,
+             "success_rate_eval_train": final * min(t, 8) / 8,
              "success_rate_eval_heldout": final / 2, "replay_success": 5, "replay_timeout": 50,
              **({"generator_val_accuracy": generator * t / 10} if generator is not None else {}),
              **({"relabel_gate_open": frames * t // 10 >= gate_from} if gate_from is not None else {})}
