@@ -12,6 +12,7 @@ from pathlib import Path
 from higher_dist.config import ConfigError, is_babyai_world
 from higher_dist.config_flags import positive_int, world_name
 from higher_dist.config_presets import make_config
+from higher_dist.launch.layout import available_cores
 from higher_dist.paths import ensure_folder
 from higher_dist.reproduce import plan as plan_mod
 from higher_dist.reproduce.archive import archive as archive_runs
@@ -39,7 +40,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--profile", choices=plan_mod.PROFILES, default="paper",
                    help="paper: the paper's settings; default: this project's defaults")
     p.add_argument("--parallel", type=positive_int, default=None,
-                   help=f"runs at once (default fits this machine: {plan_mod.default_parallel()})")
+                   help="runs at once (default: one per core this process may use, its CPU affinity and "
+                        f"cgroup quota: {plan_mod.default_parallel()})")
     p.add_argument("--out", default="runs/reproduce", help="the plan's folder (plan.json, runs/, figures/, results.md)")
     p.add_argument("--world", type=world_name, default="paper", metavar="WORLD",
                    help="paper, small (a quick world for smoke tests) or a BabyAI pickup level id")
@@ -152,7 +154,7 @@ def print_plan(plan: plan_mod.Plan, spis: dict[str, float], parallel: int) -> No
     left = sum(r["left"] for r in cluster)
     print(f"\n{len(rows)} runs ({len(cluster)} cluster runs, {len(rows) - len(cluster)} generator runs); "
           f"{left:,} env frames left to run")
-    print(f"estimated cost on this machine ({os.cpu_count()} cores, {platform.machine()}): "
+    print(f"estimated cost on this machine ({available_cores()} cores to use, {platform.machine()}): "
           f"{human_seconds(wall)} wall-clock at --parallel {parallel}")
     print(f"  frame rate used: {rates.fps:.0f} frames/s per run at {rates.spi:g} samples per insert, {rates.source}")
     print(f"  generator runs: {rates.gen_source}")

@@ -139,11 +139,11 @@ def experiments_for(world: str, asked: list[str] | None) -> tuple[list[str], lis
 
 
 def default_parallel() -> int:
-    """Runs at once that fit this machine: one per core. A run's roles wait on each other (the learner on
-    experience, the actor on weights), so one run alone leaves part of the machine idle; on the 2-core
-    development machine two runs at a time each ran at 1,200-1,750 frames/s (docs/results.md, "How it
-    was measured")."""
-    return max(1, os.cpu_count() or 1)
+    """Runs at once that fit this machine: one per core this process may use (its affinity and cgroup
+    quota, as the run layout counts them). A run's roles wait on each other (the learner on experience,
+    the actor on weights), so one run alone leaves part of the machine idle; on the 2-core development
+    machine two runs at a time each ran at 1,200-1,750 frames/s (docs/results.md, "How it was measured")."""
+    return layout.available_cores()
 
 
 def default_actors(parallel: int) -> int:
