@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from higher_dist.config import TARGET_UPDATES, DQNConfig, NetworkConfig
+from higher_dist.config import DQNConfig, NetworkConfig
 from higher_dist.learning.compiled_loss import CompiledLoss
 from higher_dist.learning.devices import resolve_device
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
@@ -45,7 +45,7 @@ class TransitionBatchLike(Protocol):
 
 
 def dqn_terms(
-    online: nn.Module,
+    online: QNetwork,
     target: nn.Module,
     obs: torch.Tensor,
     mission: torch.Tensor,
@@ -66,24 +66,14 @@ def dqn_terms(
     same, for fewer, larger operations.
     """
     b = obs.shape[0]
-    shares_text = hasattr(online, "encode_mission")
+    # obs and next_obs share the episode's mission: encode it once, for both.
+    text = online.encode_mission(mission)
     if joint_online:
-        views = torch.cat([obs, next_obs])
-        if shares_text:
-            # A QNetwork: encode the shared mission once for both halves.
-            text = online.encode_mission(mission)
-            q_both = online.q_values(views, torch.cat([text, text]))
-        else:
-            q_both = online(views, torch.cat([mission, mission]))
+        q_both = online.q_values(torch.cat([obs, next_obs]), torch.cat([text, text]))
         q_all, online_next = q_both[:b], (lambda: q_both[b:].detach())  # noqa: E731
-    elif shares_text:
-        # A QNetwork: encode the shared mission once and reuse it (detached) for next_obs.
-        text = online.encode_mission(mission)
+    else:
         q_all = online.q_values(obs, text)
         online_next = lambda: online.q_values(next_obs, text.detach())  # noqa: E731
-    else:
-        q_all = online(obs, mission)
-        online_next = lambda: online(next_obs, mission)  # noqa: E731
     q = q_all.gather(1, action.view(-1, 1)).squeeze(1)
     with torch.no_grad():
         q_next_target = target(next_obs, mission)
@@ -97,7 +87,7 @@ def dqn_terms(
 
 
 def dqn_loss(
-    online: nn.Module,
+    online: QNetwork,
     target: nn.Module,
     obs: torch.Tensor,
     mission: torch.Tensor,
@@ -151,8 +141,6 @@ class DQNLearner:
 
     def __init__(self, net_cfg: NetworkConfig, dqn_cfg: DQNConfig, device: str = "cpu",
                  spec: WorldSpec = DEFAULT_SPEC, seed: int = 0):
-        if dqn_cfg.target_update not in TARGET_UPDATES:
-            raise ValueError(f"target_update: must be one of {', '.join(TARGET_UPDATES)}, got {dqn_cfg.target_update!r}")
         self.net_cfg = net_cfg
         self.cfg = dqn_cfg
         self.device = resolve_device(device)
@@ -271,14 +259,6 @@ class DQNLearner:
         """Hard copy online -> target."""
         with torch.no_grad():
             torch._foreach_copy_(self._target_params, self._online_params)
-
-    @torch.no_grad()
-    def greedy_q(self, obs: np.ndarray, mission: np.ndarray) -> np.ndarray:
-        """Online Q-values (B, 4) for numpy inputs, in eval mode, as numpy."""
-        self.online.eval()
-        q = self.online(torch.from_numpy(np.ascontiguousarray(obs)).to(self.device, torch.uint8),
-                        torch.from_numpy(np.ascontiguousarray(mission)).to(self.device, torch.long))
-        return q.cpu().numpy()
 
     def weights_numpy(self) -> dict[str, np.ndarray]:
         """The online network's weights as float32 CPU arrays, to publish to actors."""

@@ -6,8 +6,8 @@ SUB socket is CONFLATEd with a tiny high-water mark: a slow terminal can never m
 anywhere. A frame that does not decode to a telemetry message is counted and ignored; a `stop` message
 ends the dashboard (the learner sends it on shutdown).
 
-Endpoints: a dashboard needs only the learner's control endpoint; `telemetry_endpoint_for` asks
-launch/topology.py (the only place that knows the port layout) for the telemetry channel's. Under --keys
+Endpoints: a dashboard needs only the learner's control endpoint; `Endpoints.from_control` in
+launch/topology.py (the only place that knows the port layout) gives the telemetry channel's. Under --keys
 the telemetry is encrypted like every channel and the dashboard connects with a client key pair.
 """
 from __future__ import annotations
@@ -20,17 +20,11 @@ from rich.console import Console
 from rich.live import Live
 
 from higher_dist.launch.channels import open_channel
-from higher_dist.launch.topology import Endpoints
 from higher_dist.roles.dashboard_view import DashboardState, render
 from higher_dist.wire import codec
 from higher_dist.wire.security import Security
 
 MAX_FRAME_BYTES = 8 << 20  # a telemetry record is a few kB; refuse to buffer anything absurd
-
-
-def telemetry_endpoint_for(control_endpoint: str) -> str:
-    """tcp://HOST:P -> tcp://HOST:P+3, or a ValueError naming what is wrong with the endpoint."""
-    return Endpoints.from_control(control_endpoint).telemetry
 
 
 STOP = {"type": "stop"}  # what decode_record returns for the learner's stop message

@@ -10,7 +10,8 @@ import pytest
 import zmq
 from rich.console import Console
 
-from higher_dist.roles.dashboard import STOP, decode_record, run_dashboard, telemetry_endpoint_for
+from higher_dist.launch.topology import Endpoints
+from higher_dist.roles.dashboard import STOP, decode_record, run_dashboard
 from higher_dist.wire import encode
 from higher_dist.roles.dashboard_view import DashboardState, render, sparkline
 
@@ -140,12 +141,13 @@ def test_histories_are_bounded():
     assert state.garbage_frames == 1 and state.records_seen == 50
 
 
-def test_telemetry_endpoint_for():
-    assert telemetry_endpoint_for("tcp://10.0.0.5:5555") == "tcp://10.0.0.5:5558"
-    assert telemetry_endpoint_for("tcp://node-a:7000") == "tcp://node-a:7003"
+def test_the_dashboards_telemetry_endpoint_comes_from_the_learners_control_endpoint():
+    # what `higher-dashboard --learner` connects to
+    assert Endpoints.from_control("tcp://10.0.0.5:5555").telemetry == "tcp://10.0.0.5:5558"
+    assert Endpoints.from_control("tcp://node-a:7000").telemetry == "tcp://node-a:7003"
     for bad in ("10.0.0.5:5555", "tcp://host", "tcp://host:notaport", "ipc:///tmp/x", "", "tcp://h:65534"):
         with pytest.raises(ValueError):
-            telemetry_endpoint_for(bad)
+            Endpoints.from_control(bad)
 
 
 def telemetry(record: dict) -> bytes:

@@ -9,9 +9,10 @@ import pytest
 import torch
 from torch import nn
 
-from higher_dist.config import DQNConfig
+from higher_dist.config import ConfigError, DQNConfig, from_dict
 from higher_dist.learning.dqn import DQNLearner, dqn_loss, learning_rate_at
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
+from higher_dist.world.spec import DEFAULT_SPEC
 from support.dqn_batches import SMALL, batch_tensors, needs_cxx, random_batch
 
 torch.set_num_threads(1)
@@ -28,6 +29,15 @@ def params_of(net: nn.Module) -> list[torch.Tensor]:
 
 def same(a: list[torch.Tensor], b: list[torch.Tensor]) -> bool:
     return all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+def test_a_target_update_outside_its_choices_is_refused_by_the_config_naming_the_field() -> None:
+    from higher_dist.config import Config
+
+    data = Config().to_dict()
+    data["dqn"]["target_update"] = "soft"
+    with pytest.raises(ConfigError, match=r"dqn.target_update: must be one of period, polyak, got 'soft'"):
+        from_dict(data)
 
 
 def test_update_returns_priorities_of_the_pre_update_networks() -> None:
@@ -128,8 +138,9 @@ def test_published_weights_reproduce_the_learners_q_values() -> None:
     load_weights_numpy(actor_net, learner.weights_numpy())
     with torch.no_grad():
         q_actor = actor_net(torch.from_numpy(batch.obs), torch.from_numpy(batch.mission)).numpy()
-    q_learner = learner.greedy_q(batch.obs, batch.mission)
-    assert q_learner.shape == (5, 4)
+    with torch.no_grad():
+        q_learner = learner.online(torch.from_numpy(batch.obs), torch.from_numpy(batch.mission)).numpy()
+    assert q_learner.shape == (5, DEFAULT_SPEC.n_actions)
     np.testing.assert_array_equal(q_actor, q_learner)
     # Loading into the learner sets both networks.
     other = DQNLearner(SMALL, DQNConfig(compile=False), seed=99)
