@@ -63,9 +63,7 @@ def _run(prog: str, build: Callable[[], int]) -> int:
     trace_from_env(prog)  # only when HIGHER_MEMTRACE_DIR is set (higher-bench soak --trace-memory)
     try:
         return build()
-    except ConfigError as e:
-        return _die(prog, str(e))
-    except ValueError as e:
+    except ValueError as e:  # a ConfigError (a ValueError too) or other bad input, e.g. a malformed endpoint
         return _die(prog, str(e))
 
 

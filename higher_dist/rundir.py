@@ -42,10 +42,6 @@ class RunDir:
     def write_config(self, cfg: Config) -> None:
         atomic_write_bytes(self.path / "config.json", cfg.to_json().encode())
 
-    def read_config(self) -> dict[str, Any] | None:
-        p = self.path / "config.json"
-        return json.loads(p.read_text()) if p.exists() else None
-
     def append_metrics(self, record: dict[str, Any]) -> None:
         record = {m.TIME: round(time.time(), 3), **record}
         with open(self.metrics_path, "a") as f:

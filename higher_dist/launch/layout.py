@@ -56,14 +56,6 @@ class Layout:
     relabeler_threads: int
     learner_device: str
 
-    def threads_of(self, role: str) -> int:
-        """torch threads for a role name as the launcher names them (learner, relabeler, actorN)."""
-        if role == "learner":
-            return self.learner_threads
-        if role == "relabeler":
-            return self.relabeler_threads
-        return self.actor_threads
-
     def describe(self) -> str:
         """One line for the dashboard, the launcher's log and the run's metrics."""
         actors = f"{self.actors} actor{'s' if self.actors != 1 else ''} x {self.actor_threads} thread"

@@ -149,10 +149,6 @@ class WorldSpec:
         """Largest value of each view channel (network embedding rows, wire value limits)."""
         return tuple(n - 1 for n in self.channel_values)
 
-    @property
-    def attr_max(self) -> tuple[int, ...]:
-        return tuple(n - 1 for n in self.attr_values)
-
     def attr_allowed(self) -> np.ndarray:
         """(4, max(attr_values) + 1) bool: entry [a, v + 1] is True when this world uses value v of
         attribute a; column 0 stands for -1 (none). For vectorised checks of picks and goals."""

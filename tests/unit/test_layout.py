@@ -39,7 +39,6 @@ def test_given_actors_and_threads_are_kept():
 def test_a_layout_describes_itself_in_one_line():
     text = plan_layout(16).describe()
     assert text == "16 cores: learner 13 threads on cpu, relabeler 1, 2 actors x 1 thread"
-    assert plan_layout(16).threads_of("learner") == 13 and plan_layout(16).threads_of("actor3") == 1
 
 
 @pytest.mark.parametrize("bad", [dict(cores=0), dict(cores=4, actors=0)])
