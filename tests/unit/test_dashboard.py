@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import io
+import re
 import threading
 import time
 
@@ -52,6 +53,54 @@ def export(renderable) -> str:
     console = Console(record=True, width=140, file=io.StringIO(), color_system=None)
     console.print(renderable)
     return console.export_text()
+
+
+def drawn_panels(text: str) -> dict[str, list[str]]:
+    """Each panel of a dashboard drawn as text, by the first word of its title: the rows inside its
+    borders (left padding kept, blank rows dropped) and, under TITLE.footer, its bottom border's text."""
+    lines = text.splitlines()
+    out: dict[str, list[str]] = {}
+    for i, line in enumerate(lines):
+        for box_top in re.finditer(r"╭─ (\w+)[^╮]*╮", line):
+            start, end, rows = box_top.start(), box_top.end(), []
+            for below in lines[i + 1:]:
+                cell = below[start:end]
+                if cell.startswith("╰"):
+                    out[f"{box_top.group(1)}.footer"] = [" ".join(cell.strip("╰─╯ ").split())]
+                    break
+                if cell[1:-1].strip():
+                    rows.append(cell[1:-1].rstrip())
+            out[box_top.group(1)] = rows
+    return out
+
+
+def figures(rows: list[str]) -> dict[str, str]:
+    """A label/value panel's rows as {label: its figures, spaces squeezed}; an unlabelled row (the
+    frames bar) is under ""."""
+    out = {}
+    for row in rows:
+        if row[1:2] == " ":
+            out[""] = " ".join(row.split())
+        else:
+            label, value = re.split(r"\s{2,}", row.strip(), maxsplit=1)
+            out[label] = " ".join(value.split())
+    return out
+
+
+def role_rows(rows: list[str]) -> list[list[str]]:
+    """The cluster panel's role table below its header rule, one list of cells per row."""
+    rule = next(i for i, row in enumerate(rows) if set(row.strip()) == {"─"})
+    return [re.split(r"\s{2,}", row.strip()) for row in rows[rule + 1:]]
+
+
+# What each label/value row shows when its record has nothing for it.
+NOTHING = {"Learning": {"frames": "- / -", "": "-", "ETA": "-", "frames/s": "-", "updates": "- (-)", "episodes": "-",
+                        "replay ratio": "-", "loss": "-", "mean Q": "-", "epsilon": "-", "greedy, train": "-",
+                        "greedy, held-out": "-", "exploring, train": "-"},
+           "Relabeler": {"dataset size": "-", "val. accuracy": "-", "gate": "-", "relabels/s": "-",
+                         "relabelled eps": "-", "relabel accuracy": "-"},
+           "Replay": {"size": "-", "success": "- -", "wrong pick": "- -", "time-out": "- -", "relabelled": "- -"},
+           "Trends": {"greedy success": "-", "exploring success": "-", "generator acc.": "-"}}
 
 
 def test_sparkline_known_input():
@@ -110,17 +159,56 @@ def test_dead_role_row_is_red():
     assert 'color: #800000; text-decoration-color: #800000; font-weight: bold">GONE (dead)' in html
 
 
-@pytest.mark.parametrize("record", [
-    {},
-    {"frames": None, "frames_budget": None, "roles": None, "relabel_gate_open": None},
-    {"frames": 10, "frames_budget": 0, "frames_per_s": 0.0, "roles": [{"role": "actor"}, "junk"]},
-    {"frames": "many", "loss": float("nan"), "replay_success": -1, "roles": [{"state": "dead", "id": "x"}]},
-])
-def test_missing_or_odd_keys_render(record):
+def test_a_records_figures_show_in_their_panels():
+    record = {**recorded_stream()[-1], "frames": 123_456, "frames_budget": 1_000_000, "success_rate_train": 0.41,
+              "rejected_messages": 15, "rejects_by_reason": {"mission_grammar": 12, "outcome": 3, "shape": 0}}
     state = DashboardState()
     state.update(record, now=0.0)
-    text = export(render(state, now=1.0))
-    assert "Cluster" in text and "Replay" in text and "-" in text
+    drawn = drawn_panels(export(render(state, now=0.5)))
+    assert figures(drawn["Learning"]) == {
+        "frames": "123,456 / 1,000,000", "": "━━ 12%", "ETA": "9m44s",  # 876,544 frames left at 1,500/s
+        "frames/s": "1,500/s", "updates": "9,000 (2.50/s)", "episodes": "450", "replay ratio": "8.00",
+        "loss": "0.0123", "mean Q": "0.457", "epsilon": "0.100", "greedy, train": "50.0% ± 3.1",
+        "greedy, held-out": "25.0%", "exploring, train": "41.0%"}
+    assert figures(drawn["Relabeler"]) == {"dataset size": "1,500", "val. accuracy": "90.0%", "gate": "open",
+                                           "relabels/s": "4.50/s", "relabelled eps": "90",
+                                           "relabel accuracy": "81.2%"}
+    assert figures(drawn["Replay"][:5]) == {"size": "1,000", "success": "200 20.0%", "wrong pick": "300 30.0%",
+                                            "time-out": "400 40.0%", "relabelled": "100 10.0%"}
+    assert drawn["Replay"][5].strip() == "█" * 30  # the stacked bar: 6 + 9 + 12 + 3 cells
+    assert figures(drawn["Trends"]) == {"greedy success": "▅ 50.0%", "exploring success": "▄ 41.0%",
+                                        "generator acc.": "▇ 90.0%"}
+    # Roles sorted learner, relabeler, actors by id; then the rejects by reason, largest first, none of 0.
+    assert role_rows(drawn["Cluster"]) == [
+        ["learner", "0", "nodeA", "1000", "alive", "0.1 s", "-", "-", "0", "0"],
+        ["relabeler", "0", "nodeA", "1001", "alive", "0.4 s", "-", "-", "0", "3"],
+        ["actor", "0", "nodeA", "1002", "alive", "0.2 s", "812/s", "1", "0", "0"],
+        ["actor", "1", "nodeB", "4321", "GONE (dead)", "31.0 s", "-", "7", "2", "0"],
+        ["dropped: mission_grammar 12, outcome 3"]]
+    assert drawn["Cluster.footer"] == ["rejected messages 15 · weights v42"]
+
+
+@pytest.mark.parametrize("record, shown, roles", [
+    ({}, {}, [["-"]]),
+    ({"frames": None, "frames_budget": None, "roles": None, "relabel_gate_open": None}, {}, [["-"]]),
+    ({"frames": 10, "frames_budget": 0, "frames_per_s": 0.0, "roles": [{"role": "actor"}, "junk"]},
+     {("Learning", "frames"): "10 / 0", ("Learning", "frames/s"): "0.00/s"}, [["actor"] + ["-"] * 9]),
+    ({"frames": "many", "loss": float("nan"), "replay_success": -1, "roles": [{"state": "dead", "id": "x"}]},
+     {("Replay", "success"): "-1 -"}, [["-", "-", "-", "-", "GONE (dead)"] + ["-"] * 5]),
+    ({"frames": 500, "success_rate_train": 0.25, "relabel_gate_open": False, "replay_timeout": 40},
+     {("Learning", "frames"): "500 / -", ("Learning", "exploring, train"): "25.0%", ("Relabeler", "gate"): "closed",
+      ("Replay", "time-out"): "40 100.0%", ("Trends", "exploring success"): "▃ 25.0%"}, [["-"]]),
+])
+def test_a_dash_stands_exactly_where_a_value_is_missing_or_unusable(record, shown, roles):
+    state = DashboardState()
+    state.update(record, now=0.0)
+    drawn = drawn_panels(export(render(state, now=1.0)))
+    for panel, nothing in NOTHING.items():
+        rows = drawn[panel][:len(nothing)]  # the replay's bar, when drawn, comes after its rows
+        expected = {label: shown.get((panel, label), dash) for label, dash in nothing.items()}
+        assert figures(rows) == expected, panel
+    assert role_rows(drawn["Cluster"]) == roles
+    assert drawn["Cluster.footer"] == ["rejected messages - · weights v-"]
 
 
 def test_waiting_and_stale_banners():
