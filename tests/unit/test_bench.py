@@ -5,12 +5,28 @@ import json
 from higher_dist.bench import COMMANDS, main
 
 
-def test_world_bench_ends_with_its_figures_as_json(capsys):
+def number(cell: str) -> float:
+    return float(cell.replace(",", "").removesuffix("/s"))
+
+
+def test_world_bench_prints_a_row_per_batch_size_and_the_same_figures_as_json(capsys):
     assert main(["world", "--seconds", "0.05", "--no-minigrid"]) == 0
-    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    for key in ("b1_steps_per_s", "b64_steps_per_s", "b256_steps_per_s", "minigrid_steps_per_s", "ratio_b64"):
-        assert key in last
-    assert last["b64_steps_per_s"] > 0 and last["minigrid_steps_per_s"] is None
+    lines = capsys.readouterr().out.strip().splitlines()
+    last = json.loads(lines[-1])
+    assert lines[0] == "World steps/s, random actions, 0.05 s per row (world: paper)"
+    assert lines[1].split() == ["environment", "batch", "steps/s", "x", "MiniGrid"]
+    assert last["world"] == "paper" and last["seconds"] == 0.05
+    rows = [line.removeprefix("higher_dist BatchedFetchAttr").split() for line in lines
+            if line.startswith("higher_dist BatchedFetchAttr")]
+    assert [int(batch) for batch, _, _ in rows] == [1, 64, 256]
+    for batch, rate, ratio in rows:
+        figure = last[f"b{batch}_steps_per_s"]
+        # The row shows whole steps/s, the JSON a tenth: the same measurement.
+        assert abs(number(rate) - figure) <= 1 and ratio == "n/a"
+        # env steps (batch steps x batch size) per second: more than none, fewer than a core could ever do
+        assert 0 < figure < 1e9
+    assert lines[-2].split() == ["minigrid", "MiniGrid-Fetch-8x8-N3-v0", "unavailable"]
+    assert last["minigrid_steps_per_s"] is None and last["ratio_b64"] is None
 
 
 def test_unknown_benchmark_is_refused_with_the_known_names(capsys):
@@ -53,13 +69,26 @@ def test_time_to_success_refuses_a_target_outside_0_1(capsys):
     assert "--targets" in capsys.readouterr().err
 
 
-def test_learner_bench_measures_one_lever_row_through_the_replay(capsys):
-    assert main(["learner", "--only", "prefetch", "--batch-sizes", "8", "--seconds", "0.05"]) == 0
-    out = capsys.readouterr().out
-    last = json.loads(out.strip().splitlines()[-1])
-    row = last["rows"]["+ prefetch"]["b8"]
-    assert row["samples_per_s"] > 0 and row["cpu_samples_per_s"] > 0 and row["compile_s"] is None
-    assert last["b8_samples_per_s"] == row["samples_per_s"] and "+ prefetch" in out
+def test_learner_bench_prints_consistent_figures_for_its_row(capsys):
+    assert main(["learner", "--only", "prefetch", "--batch-sizes", "8,16", "--seconds", "0.05", "--repeat", "3"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    last = json.loads(lines[-1])
+    assert lines[0].startswith("learner bench: 1 thread(s), torch ")
+    assert lines[0].endswith("parameters, full prioritized replay, median of 3 interleaved round(s) of 0.05 s")
+    assert lines[1].split() == ["samples/s", "(wall)", "B=8", "B=16", "cpu", "samples/s", "at", "B=8/16"]
+    assert last["threads"] == 1 and last["repeat"] == 3 and list(last["rows"]) == ["+ prefetch"]
+    printed = lines[2].removeprefix("+ prefetch").split()
+    for b, cell, cpu in zip((8, 16), printed[:2], printed[2].split("/")):
+        row = last["rows"]["+ prefetch"][f"b{b}"]
+        # The table shows the JSON's figures: wall samples/s, then cpu samples/s.
+        assert number(cell) == row["samples_per_s"] == last[f"b{b}_samples_per_s"]
+        assert number(cpu) == row["cpu_samples_per_s"] == last[f"b{b}_cpu_samples_per_s"] > 0
+        # Each update learns from one batch: samples/s = B x updates/s, within the rounding of each.
+        assert abs(row["samples_per_s"] - b * last[f"b{b}_updates_per_s"]) <= 0.5 + b * 0.05
+        assert abs(row["samples_per_s"] - b * row["updates_per_s"]) <= 0.5 + b * 0.5
+        # The figure is the median of the three rounds (each round rounded alike).
+        assert len(row["runs"]) == 3 and sorted(row["runs"])[1] == row["samples_per_s"]
+        assert row["compile_s"] is None and 0 < row["samples_per_s"] < 1e8
 
 
 def test_gpu_bench_refuses_a_host_without_cuda_and_measures_the_cpu_path_when_allowed(capsys):
