@@ -33,7 +33,9 @@ from higher_dist.config_flags import DefaultsHelp
 from higher_dist.paths import ensure_folder
 
 
-def plot_success(runs: list[Run], key_for, title: str, out: Path) -> Path:
+def success_figure(runs: list[Run], key_for, title: str):
+    """Each preset's success curve (`key_for(run)`): one run's as is, several seeds' as their mean with a
+    min-max band. Returns the matplotlib Figure (main saves it)."""
     plt = pyplot()
     by_preset: dict[str, list[Run]] = defaultdict(list)
     for run in runs:
@@ -56,10 +58,11 @@ def plot_success(runs: list[Run], key_for, title: str, out: Path) -> Path:
     ax.set(xlabel="environment frames", ylabel="success rate", title=title, ylim=(-0.02, 1.02))
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize="small")
-    return _save(fig, out)
+    return fig
 
 
-def plot_generator(runs: list[Run], out: Path) -> Path:
+def generator_figure(runs: list[Run]):
+    """Each run's generator validation accuracy (solid) and relabel accuracy (dashed)."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 5))
     for i, run in enumerate(runs):
@@ -74,10 +77,11 @@ def plot_generator(runs: list[Run], out: Path) -> Path:
            title="Instruction generator (solid: validation, dashed: relabels vs ground truth)")
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize="small")
-    return _save(fig, out)
+    return fig
 
 
-def plot_replay(runs: list[Run], out: Path) -> Path:
+def replay_figure(runs: list[Run]):
+    """One panel per run with replay data: the replay's share of each origin over frames, stacked."""
     plt = pyplot()
     with_data = [(run, *replay_fractions(run)) for run in runs]
     with_data = [d for d in with_data if len(d[1])] or [(runs[0], np.empty(0), np.empty((4, 0)))]
@@ -103,7 +107,7 @@ def plot_replay(runs: list[Run], out: Path) -> Path:
         fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=len(labels),
                    fontsize="small")
     fig.suptitle("Replay composition by origin")
-    return _save(fig, out)
+    return fig
 
 
 # (column, metric key, digits): a run's curve, one row per greedy evaluation
@@ -188,22 +192,22 @@ def main(argv: list[str]) -> int:
     greedy = all(success_key(run) == m.SUCCESS_EVAL_TRAIN for run in runs)
     title = ("Greedy success on training goals" if greedy
              else "Success on training goals (greedy where evaluated, else while exploring)")
-    written = [plot_success(runs, success_key, title, out / "success_rate.png")]
+    written = [_save(success_figure(runs, success_key, title), out / "success_rate.png")]
     heldout = [run for run in runs if run.has(m.SUCCESS_EVAL_HELDOUT)]
     if heldout:
-        written.append(plot_success(heldout, lambda run: "success_rate_eval_heldout",
-                                    "Greedy success on held-out goals", out / "success_rate_heldout.png"))
+        written.append(_save(success_figure(heldout, lambda run: m.SUCCESS_EVAL_HELDOUT,
+                                            "Greedy success on held-out goals"), out / "success_rate_heldout.png"))
     averaged = [run for run in runs if run.has(m.SUCCESS_EVAL_TRAIN_AVERAGED)]
     if averaged:
-        written.append(plot_success(averaged, lambda run: m.SUCCESS_EVAL_TRAIN_AVERAGED,
-                                    "Greedy success of the averaged weights on training goals",
-                                    out / "success_rate_averaged.png"))
+        written.append(_save(success_figure(averaged, lambda run: m.SUCCESS_EVAL_TRAIN_AVERAGED,
+                                            "Greedy success of the averaged weights on training goals"),
+                             out / "success_rate_averaged.png"))
     generator_runs = [run for run in runs if run.has(m.GENERATOR_VAL_ACCURACY) or run.has(m.RELABEL_ACCURACY)]
     if generator_runs:
-        written.append(plot_generator(generator_runs, out / "generator_accuracy.png"))
+        written.append(_save(generator_figure(generator_runs), out / "generator_accuracy.png"))
     else:
         print("higher-plot: no generator data in these runs; skipped generator_accuracy.png")
-    written.append(plot_replay(runs, out / "replay_composition.png"))
+    written.append(_save(replay_figure(runs), out / "replay_composition.png"))
     if args.table:
         written += [write_table(run, out) for run in runs]
     for path in written:

@@ -5,9 +5,10 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from higher_dist.analysis.runs import mean_band
-from higher_dist.plot import main
+from higher_dist.analysis.runs import find_runs, mean_band, success_key
+from higher_dist.plot import generator_figure, main, replay_figure, success_figure
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -35,17 +36,96 @@ def write_run(path: Path, preset: str, seed: int, n: int = 20, generator: bool =
     return path
 
 
-def test_plot_writes_pngs(tmp_path, capsys):
-    runs = [write_run(tmp_path / "higher_s0", "higher", 0), write_run(tmp_path / "higher_s1", "higher", 1),
+def png_size(path: Path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == PNG_SIGNATURE and data[12:16] == b"IHDR"
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def curve(path: Path, key: str) -> tuple[np.ndarray, np.ndarray]:
+    """(frames, values) of the records of metrics.jsonl that carry `key`, read back with json."""
+    records = [json.loads(line) for line in (path / "metrics.jsonl").read_text().splitlines()[:-1]]  # not the torn one
+    pts = [(r["frames"], r[key]) for r in records if r.get(key) is not None]
+    return np.array([f for f, _ in pts], dtype=float), np.array([v for _, v in pts], dtype=float)
+
+
+def three_runs(tmp_path: Path) -> list[Path]:
+    return [write_run(tmp_path / "higher_s0", "higher", 0), write_run(tmp_path / "higher_s1", "higher", 1),
             write_run(tmp_path / "dqn_s0", "dqn", 0, generator=False)]
+
+
+def test_plot_writes_each_figure_it_prints(tmp_path, capsys):
     out = tmp_path / "plots"
-    assert main([str(r) for r in runs] + ["--out", str(out)]) == 0
-    printed = capsys.readouterr().out
-    for name in ("success_rate.png", "success_rate_heldout.png", "generator_accuracy.png", "replay_composition.png"):
-        png = out / name
-        assert png.is_file() and png.stat().st_size > 1000, name
-        assert png.read_bytes()[:8] == PNG_SIGNATURE
-        assert str(png) in printed
+    assert main([str(r) for r in three_runs(tmp_path)] + ["--out", str(out)]) == 0
+    printed = capsys.readouterr().out.split()
+    names = ["success_rate.png", "success_rate_heldout.png", "generator_accuracy.png", "replay_composition.png"]
+    assert printed == [str(out / name) for name in names]
+    assert sorted(p.name for p in out.iterdir()) == sorted(names)
+    width, height = png_size(out / "success_rate.png")  # 8 x 5 inches at 110 dpi, trimmed to its content
+    assert 700 < width <= 880 and 450 < height <= 560
+
+
+def test_success_figure_draws_one_run_as_is_and_seeds_as_their_mean_and_band(tmp_path):
+    paths = three_runs(tmp_path)
+    fig = success_figure(find_runs([str(p) for p in paths]), success_key, "Greedy success on training goals")
+    ax = fig.axes[0]
+    assert (ax.get_title(), ax.get_xlabel(), ax.get_ylabel()) == ("Greedy success on training goals",
+                                                                 "environment frames", "success rate")
+    assert ax.get_ylim() == (-0.02, 1.02)
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["dqn", "higher (mean of 2 seeds)"]
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    # One seed: its greedy evaluations, records 3..19, as recorded.
+    x, y = curve(paths[2], "success_rate_eval_train")
+    assert len(x) == 17
+    np.testing.assert_array_equal(lines["dqn"].get_xdata(), x)
+    np.testing.assert_array_equal(lines["dqn"].get_ydata(), y)
+    # Two seeds: both interpolated onto 200 points over the frames both cover, their mean drawn ...
+    (x0, y0), (x1, y1) = curve(paths[0], "success_rate_eval_train"), curve(paths[1], "success_rate_eval_train")
+    grid = np.linspace(max(x0[0], x1[0]), min(x0[-1], x1[-1]), 200)
+    at0, at1 = np.interp(grid, x0, y0), np.interp(grid, x1, y1)
+    mean = lines["higher (mean of 2 seeds)"]
+    np.testing.assert_allclose(mean.get_xdata(), grid)
+    np.testing.assert_allclose(mean.get_ydata(), (at0 + at1) / 2)
+    # ... within a band from the lower seed to the higher one.
+    (band,) = ax.collections
+    edge = band.get_paths()[0].vertices
+    assert edge[:, 0].min() == pytest.approx(grid[0]) and edge[:, 0].max() == pytest.approx(grid[-1])
+    assert edge[:, 1].min() == pytest.approx(np.minimum(at0, at1).min())
+    assert edge[:, 1].max() == pytest.approx(np.maximum(at0, at1).max())
+
+
+def test_generator_figure_draws_validation_solid_and_relabel_accuracy_dashed(tmp_path):
+    paths = three_runs(tmp_path)[:2]
+    ax = generator_figure(find_runs([str(p) for p in paths])).axes[0]
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    assert sorted(lines) == ["higher seed 0: relabel accuracy", "higher seed 0: validation accuracy",
+                             "higher seed 1: relabel accuracy", "higher seed 1: validation accuracy"]
+    for seed, path in enumerate(paths):
+        for what, key, style in (("validation", "generator_val_accuracy", "-"),
+                                 ("relabel", "relabel_accuracy", "--")):
+            line = lines[f"higher seed {seed}: {what} accuracy"]
+            x, y = curve(path, key)
+            np.testing.assert_array_equal(line.get_xdata(), x)
+            np.testing.assert_array_equal(line.get_ydata(), y)
+            assert line.get_linestyle() == style
+    assert ax.get_ylabel() == "exact-match accuracy"
+
+
+def test_replay_figure_stacks_each_origins_share_per_run(tmp_path):
+    paths = three_runs(tmp_path)
+    fig = replay_figure(find_runs([str(p) for p in paths]))
+    panels = [ax for ax in fig.axes if ax.axison]
+    assert [ax.get_title() for ax in panels] == ["higher seed 0", "higher seed 1", "dqn seed 0"]
+    assert [c.get_label() for c in panels[0].collections] == ["success", "wrong pick", "time-out", "relabelled"]
+    # The bottom layer's top edge is the success share: 10 i of 10 i + 30 i + 50 + 20 i, at record i's frames.
+    frames, _ = curve(paths[0], "replay_success")
+    top = {}
+    for vx, vy in panels[0].collections[0].get_paths()[0].vertices:
+        top[vx] = max(top.get(vx, 0.0), vy)
+    assert [top[f] for f in frames] == pytest.approx([10 * i / (60 * i + 50) for i in range(20)])
+    # The top layer's top edge is the whole replay, at every frame.
+    assert max(panels[0].collections[-1].get_paths()[0].vertices[:, 1]) == pytest.approx(1.0)
+    assert panels[2].collections[-1].get_label() == "relabelled"  # drawn, at zero, for a run without relabels
 
 
 def test_plot_expands_a_folder_of_runs_and_skips_missing_generator(tmp_path, capsys):
