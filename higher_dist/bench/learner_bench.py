@@ -8,7 +8,10 @@ joint_online, prefetch) plus bf16 autocast, which is not a config field (it meas
 run round-robin `--repeat` times (A/B interleaved, so a neighbour's load hits every row alike) and
 the median is reported. Alongside wall-clock samples/s it reports CPU samples/s (CPU time of the whole
 process, prefetch thread included), which moves less with the machine's load. Compiling happens
-before timing (synchronously) and its seconds are printed. The last line is one JSON object.
+before timing (synchronously) and its seconds are printed. Then the compute bound at the default batch
+(bench/compute_bound.py: FLOPs per sample counted on the real loss, the GFLOP/s one thread reaches on
+those ops alone) and each row's CPU samples/s as a share of it. `--set network.FIELD=VALUE` (any config
+field) changes the config every row runs. The last line is one JSON object.
 """
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
+from higher_dist.bench import compute_bound
 from higher_dist.config import DQNConfig, NetworkConfig
 from higher_dist.learning.dqn import DQNLearner
 from higher_dist.learning.networks import count_parameters
@@ -208,17 +212,23 @@ def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmu
         core.close()
 
 
-def run_table(levers: list[Lever], sizes: list[int], seconds: float, repeat: int, threads: int) -> dict:
-    """Round-robin over (lever, size) `repeat` times; medians per cell."""
+def run_table(levers: list[Lever], sizes: list[int], seconds: float, repeat: int, threads: int,
+              cfg=None, bound_size: int | None = None) -> dict:
+    """Round-robin over (lever, size) `repeat` times; medians per cell. With `bound_size`, also the
+    compute bound on a batch the first row's core samples at that size (under the key "bound")."""
     cores, compile_s = {}, {}
     for lever in levers:
         for b in sizes:
-            cores[lever, b], compile_s[lever, b] = make_core(b, lever, threads=threads)
+            cores[lever, b], compile_s[lever, b] = make_core(b, lever, cfg, threads=threads)
     runs: dict[tuple, list[dict]] = {key: [] for key in cores}
+    figures = None
     try:
         for _ in range(repeat):
             for key, core in cores.items():
                 runs[key].append(time_updates(core, seconds, bf16=key[0].bf16))
+        if bound_size in sizes:
+            core = cores[levers[0], bound_size]
+            figures = compute_bound.bound(core.dqn, core.dqn._tensors(core.replay.sample(bound_size, 1.0)))
     finally:
         for core in cores.values():
             core.close()
@@ -230,6 +240,7 @@ def run_table(levers: list[Lever], sizes: list[int], seconds: float, repeat: int
             "cpu_samples_per_s": statistics.median(r["cpu_samples_per_s"] for r in rs),
             "runs": [round(r["samples_per_s"]) for r in rs], "compile_s": compile_s[lever, b],
         }
+    table["bound"] = figures
     return table
 
 
@@ -244,11 +255,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="one row with just these levers on (e.g. --only compile prefetch)")
     parser.add_argument("--net", type=_parse_override, action="append", default=[], metavar="FIELD=VALUE",
                         help="network shape, raw network step only: --net frame_stack=1 --net conv_channels=16,32")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", dest="overrides",
+                        help="any config field for every row, e.g. --set network.film_blocks=1 (JSON value)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     sizes = [int(s) for s in args.batch_sizes.split(",") if s]
     if args.net:
         return _network_shape(args, sizes)
+    cfg = bench_config(args.overrides)
     if args.levers:
         levers = lever_rows()
     elif args.only is not None:
@@ -258,9 +272,12 @@ def main(argv: list[str] | None = None) -> int:
     else:
         levers = [Lever("eager (all levers off)"), default_lever()]
     print(f"learner bench: {args.threads} thread(s), torch {torch.__version__}, "
-          f"{count_parameters(DQNLearner(NetworkConfig(), DQNConfig(compile=False)).online)} parameters, "
+          f"{count_parameters(DQNLearner(cfg.network, DQNConfig(compile=False)).online)} parameters, "
           f"full prioritized replay, median of {args.repeat} interleaved round(s) of {args.seconds:g} s")
-    table = run_table(levers, sizes, args.seconds, args.repeat, args.threads)
+    if args.overrides:
+        print("config overrides: " + " ".join(args.overrides))
+    bound_size = DQNConfig().batch_size if DQNConfig().batch_size in sizes else max(sizes)
+    table = run_table(levers, sizes, args.seconds, args.repeat, args.threads, cfg, bound_size)
     head = "".join(f"{'B=' + str(b):>10}" for b in sizes)
     print(f"{'samples/s (wall)':<28}{head}   {'cpu samples/s':>14} at B=" + "/".join(map(str, sizes)))
     summary: dict[str, object] = {"threads": args.threads, "repeat": args.repeat, "rows": {}}
@@ -278,8 +295,25 @@ def main(argv: list[str] | None = None) -> int:
         summary[f"b{b}_samples_per_s"] = round(cell["samples_per_s"])
         summary[f"b{b}_updates_per_s"] = round(cell["updates_per_s"], 1)
         summary[f"b{b}_cpu_samples_per_s"] = round(cell["cpu_samples_per_s"])
+    figures = table["bound"]
+    measured = {lv.name: table[lv.name, bound_size]["cpu_samples_per_s"] for lv in levers}
+    print("\n".join(compute_bound.bound_lines(figures, bound_size, measured)))
+    summary["bound"] = {"batch_size": bound_size, **{k: round(v, 1) for k, v in figures.items()},
+                        "ratio": round(measured[defaults.name] / figures["bound_samples_per_s"], 3)}
+    summary["network"] = dataclasses.asdict(cfg.network)
     print(json.dumps(summary))
     return 0
+
+
+def bench_config(overrides: list[str]):
+    """The paper-world `higher` config every row runs, with `--set FIELD=VALUE` overrides (validated)."""
+    from higher_dist.config import from_dict, override
+    from higher_dist.config_flags import explicit_overrides
+    from higher_dist.config_presets import make_config
+
+    pairs = explicit_overrides(argparse.Namespace(set=overrides))
+    cfg = override(make_config("higher", "paper"), **pairs)
+    return from_dict(cfg.to_dict())  # the declared types (tuples) and validation, as a run gets them
 
 
 def _network_shape(args, sizes: list[int]) -> int:
@@ -297,8 +331,12 @@ def _network_shape(args, sizes: list[int]) -> int:
         batches = [synthetic_batch(rng, b, net_cfg.frame_stack, gamma=dqn_cfg.gamma, n_step=dqn_cfg.n_step)
                    for _ in range(_POOL)]
         r = measure(learner, batches, args.seconds, 10)
-        print(f"B={b:<5} {r['samples_per_s']:>10,.0f} samples/s   {r['cpu_samples_per_s']:>10,.0f} cpu samples/s")
+        figures = compute_bound.bound(learner, learner._tensors(batches[0]))
+        print(f"B={b:<5} {r['samples_per_s']:>10,.0f} samples/s   {r['cpu_samples_per_s']:>10,.0f} cpu samples/s   "
+              f"{figures['flops_per_sample'] / 1e6:.3f} MFLOP/sample, bound {figures['bound_samples_per_s']:,.0f} "
+              f"({r['cpu_samples_per_s'] / figures['bound_samples_per_s']:.0%})")
         summary[f"b{b}_samples_per_s"] = round(r["samples_per_s"])
+        summary[f"b{b}_bound_samples_per_s"] = round(figures["bound_samples_per_s"])
     print(json.dumps(summary))
     return 0
 

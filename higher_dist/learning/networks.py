@@ -80,17 +80,25 @@ class ViewEncoder(nn.Module):
     """Embeds a frame stack of views and runs 3x3 convolutions over it.
 
     Each cell's 4 channel values are embedded, one table with per-channel row offsets, and summed (an
-    additive code of the object's attributes); the k frames are concatenated along features, so the
-    first convolution sees motion and remembered objects. Convolutions are unpadded ("valid") while
-    the map is at least 3 cells wide: on a 7x7 view that is cheaper than padding and still covers
-    every cell. Reused by the instruction generator (with `in_frames=1`).
+    additive code of the object's attributes); this is BabyAI 1.1's bag-of-words cell embedding (Hui
+    et al. 2020: one learned vector per (channel, value) pair, summed over channels). The k frames are
+    concatenated along features, so the first convolution sees motion and remembered objects.
+    Convolutions are unpadded ("valid") while the map is at least 3 cells wide: on a 7x7 view that is
+    cheaper than padding and still covers every cell. Nothing max-pools: BabyAI 1.1's other encoder
+    option (no pooling in the first layers) is what this encoder always does.
+
+    film_blocks > 0 adds BabyAI 1.1's residual FiLM blocks after the convolutions, each
+    h <- h + relu(FiLM(conv3x3(h))) with a padded convolution that keeps channels and map size; with
+    0, FiLM modulates the last convolution. Reused by the instruction generator (with `in_frames=1`).
     """
 
     def __init__(self, embed_dim: int, conv_channels: tuple[int, ...], in_frames: int,
-                 spec: WorldSpec = DEFAULT_SPEC):
+                 spec: WorldSpec = DEFAULT_SPEC, film_blocks: int = 0):
         super().__init__()
         if not conv_channels:
             raise ValueError("conv_channels: needs at least one layer")
+        if isinstance(film_blocks, bool) or not isinstance(film_blocks, int) or film_blocks < 0:
+            raise ValueError(f"film_blocks: must be an integer >= 0, got {film_blocks!r}")
         self.embed_dim = embed_dim
         self.in_frames = in_frames
         self.view_size = view_size = spec.view_size
@@ -111,6 +119,9 @@ class ViewEncoder(nn.Module):
             size = size - 2 + 2 * pad
             in_ch = out_ch
         self.convs = nn.ModuleList(convs)
+        # Padded: the skip connection adds the block's input to its output, cell by cell.
+        self.film_blocks = nn.ModuleList(nn.Conv2d(in_ch, in_ch, kernel_size=3, padding=1) for _ in range(film_blocks))
+        self.film_layers = max(1, film_blocks)  # layers a FiLM (gamma, beta) pair is wanted for
         self.out_channels = in_ch
         self.out_size = size  # spatial side of the last feature map
         self.out_dim = in_ch * size * size
@@ -153,17 +164,31 @@ class ViewEncoder(nn.Module):
         return x.reshape(b, v, v, k * self.embed_dim).permute(0, 3, 1, 2)
 
     def forward(self, views: torch.Tensor, film: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
-        """Last feature maps (B, C, S, S), after ReLU. `film=(gamma, beta)`, each (B, C), modulates the
-        last convolution before its ReLU, so the instruction can switch feature detectors on or off."""
+        """Last feature maps (B, C, S, S), after ReLU. `film=(gamma, beta)`, each (B, film_layers * C),
+        modulates the last convolution (or each residual block's) before its ReLU, so the instruction
+        can switch feature detectors on or off."""
         h = self.embed_views(views)
+        blocks = len(self.film_blocks)
+        modulations = None
+        if film is not None:
+            modulations = list(zip(film[0].chunk(self.film_layers, dim=1), film[1].chunk(self.film_layers, dim=1)))
         last = len(self.convs) - 1
         for i, conv in enumerate(self.convs):
             h = conv(h)
-            if i == last and film is not None:
-                gamma, beta = film
-                h = h * gamma[:, :, None, None] + beta[:, :, None, None]
+            if i == last and modulations is not None and not blocks:
+                h = _film(h, *modulations[0])
             h = F.relu(h)
+        for j, conv in enumerate(self.film_blocks):
+            branch = conv(h)
+            if modulations is not None:
+                branch = _film(branch, *modulations[j])
+            h = h + F.relu(branch)
         return h
+
+
+def _film(h: torch.Tensor, gamma: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:
+    """Per-channel affine map of (B, C, S, S) maps by (B, C) gamma and beta."""
+    return h * gamma[:, :, None, None] + beta[:, :, None, None]
 
 
 class InstructionEncoder(nn.Module):
@@ -217,8 +242,9 @@ class InstructionEncoder(nn.Module):
 class QNetwork(nn.Module):
     """Q(view stack, mission) over the 4 actions.
 
-    fusion "film": the instruction yields per-channel (gamma, beta) for the last conv maps (gamma is
-    parametrised as 1 + delta so that it is centred on the identity and no channel starts switched off).
+    fusion "film": the instruction yields per-channel (gamma, beta) for the last conv maps, or for each
+    residual FiLM block's (cfg.film_blocks) (gamma is parametrised as 1 + delta so that it is centred
+    on the identity and no channel starts switched off).
     fusion "concat": the flattened view features and the instruction state are concatenated.
     The head is one hidden layer, then a dueling split (value + advantage - mean advantage) or a
     plain linear layer.
@@ -233,10 +259,12 @@ class QNetwork(nn.Module):
         self.n_actions = n_actions
         self.fusion = cfg.fusion
         self.dueling = cfg.dueling
-        self.view = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), cfg.frame_stack, spec)
+        if cfg.film_blocks and self.fusion != "film":
+            raise ValueError(f"film_blocks: {cfg.film_blocks} block(s) need fusion 'film', got {cfg.fusion!r}")
+        self.view = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), cfg.frame_stack, spec, cfg.film_blocks)
         self.text = InstructionEncoder(spec.vocab_size, cfg.word_embed_dim, cfg.text_hidden)
         if self.fusion == "film":
-            self.film = nn.Linear(cfg.text_hidden, 2 * self.view.out_channels)
+            self.film = nn.Linear(cfg.text_hidden, 2 * self.view.film_layers * self.view.out_channels)
             head_in = self.view.out_dim
         else:
             head_in = self.view.out_dim + cfg.text_hidden
