@@ -65,10 +65,11 @@ class WorldConfig:
 
 @dataclass(frozen=True)
 class NetworkConfig:
-    embed_dim: int = 8  # per-channel value embedding of the view
+    embed_dim: int = 8  # cell embedding width: a vector per (channel, value), summed (BabyAI 1.1 bag of words)
     conv_channels: tuple[int, ...] = (16, 32)  # channels of the view's conv layers
     frame_stack: int = 4  # past views stacked into the input (1: none)
     fusion: str = "film"  # how the instruction meets the view: film | concat
+    film_blocks: int = 0  # residual FiLM blocks h + relu(FiLM(conv(h))) after the convs; 0: FiLM on the last conv
     word_embed_dim: int = 16  # word embedding of the instruction
     text_hidden: int = 32  # GRU over the instruction
     hidden: int = 64  # width of the Q head's hidden layer
@@ -304,6 +305,9 @@ def validate(cfg: Config) -> None:
     _check(n.frame_stack >= 1, f"network.frame_stack: must be >= 1, got {n.frame_stack}")
     _check(n.head_init_scale > 0, f"network.head_init_scale: must be > 0, got {n.head_init_scale}")
     _check(len(n.conv_channels) >= 1, "network.conv_channels: needs at least one layer")
+    _check(n.film_blocks >= 0, f"network.film_blocks: must be >= 0 (0: FiLM on the last conv), got {n.film_blocks}")
+    _check(n.film_blocks == 0 or n.fusion == "film",
+           f"network.film_blocks: {n.film_blocks} block(s) need network.fusion=film, got {n.fusion!r}")
     d = cfg.dqn
     _check(d.batch_size >= 1, f"dqn.batch_size: must be >= 1, got {d.batch_size}")
     _check(d.lr > 0, f"dqn.lr: must be > 0, got {d.lr}")
