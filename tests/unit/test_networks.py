@@ -226,3 +226,91 @@ def test_every_seed_starts_with_q_near_zero_unlike_the_default_init() -> None:
                 out.append(float(net(views, mission).abs().max()))
     assert max(scaled) < 0.02, scaled
     assert max(default) > 0.1, default  # what the scaling prevents
+
+
+# -- BabyAI 1.1's network options (network.film_blocks) on both world families --------------------------
+
+def babyai_like_spec():
+    """A BabyAI level's encodings (7 actions, minigrid's channel values, its vocabulary) without minigrid."""
+    from higher_dist.world import babyai_language
+    from higher_dist.world.spec import BABYAI_ACTION_NAMES, BABYAI_CHANNEL_VALUES, WorldSpec
+
+    return WorldSpec(view_size=7, max_steps=64, mission_len=babyai_language.MISSION_LEN,
+                     vocab_size=len(babyai_language.VOCAB), n_actions=len(BABYAI_ACTION_NAMES),
+                     channel_values=BABYAI_CHANNEL_VALUES, family="babyai")
+
+
+def spec_views(rng: np.random.Generator, spec, b: int, k: int) -> torch.Tensor:
+    values = np.array(spec.channel_values)
+    return torch.from_numpy((rng.random((b, k, spec.view_size, spec.view_size, 4)) * values).astype(np.uint8))
+
+
+def spec_missions(rng: np.random.Generator, spec, b: int) -> torch.Tensor:
+    missions = np.zeros((b, spec.mission_len), np.int64)
+    for i, n in enumerate(rng.integers(3, spec.mission_len + 1, b)):
+        missions[i, :n] = rng.integers(3, spec.vocab_size, n)
+    return torch.from_numpy(missions)
+
+
+OPTIONS = [("film", 0), ("film", 1), ("film", 2), ("concat", 0)]
+
+
+@pytest.mark.parametrize("family", ["fetchattr", "babyai"])
+@pytest.mark.parametrize("fusion,film_blocks", OPTIONS)
+@pytest.mark.parametrize("dueling", [True, False])
+def test_every_network_option_has_the_spec_shapes_and_trains_every_layer(family, fusion, film_blocks, dueling):
+    spec = DEFAULT_SPEC if family == "fetchattr" else babyai_like_spec()
+    cfg = NetworkConfig(**{**SMALL.__dict__, "fusion": fusion, "film_blocks": film_blocks, "dueling": dueling})
+    torch.manual_seed(3)
+    net = QNetwork(cfg, spec)
+    rng = np.random.default_rng(3)
+    q = net(spec_views(rng, spec, 6, cfg.frame_stack), spec_missions(rng, spec, 6))
+    assert q.shape == (6, spec.n_actions) and torch.isfinite(q).all()
+    assert len(net.view.film_blocks) == film_blocks
+    q.square().sum().backward()
+    layers = [net.view.embed, *net.view.convs, *net.view.film_blocks, net.text.embed, net.trunk]
+    layers += [net.film] if fusion == "film" else []
+    for layer in layers:
+        assert layer.weight.grad is not None and layer.weight.grad.abs().sum() > 0, layer
+    assert net.text.gru.weight_hh_l0.grad.abs().sum() > 0
+
+
+def test_residual_film_blocks_are_the_identity_when_their_branch_is_zero():
+    """h + relu(FiLM(conv(h))): with the block's conv and the FiLM layer zeroed (gamma 1, beta 0) the
+    blocks pass the stem's maps through unchanged; a non-zero branch changes them."""
+    torch.manual_seed(4)
+    plain = QNetwork(NetworkConfig(**{**SMALL.__dict__, "film_blocks": 0}))
+    blocks = QNetwork(NetworkConfig(**{**SMALL.__dict__, "film_blocks": 2}))
+    blocks.view.convs.load_state_dict(plain.view.convs.state_dict())
+    blocks.view.embed.load_state_dict(plain.view.embed.state_dict())
+    c = plain.view.out_channels
+    with torch.no_grad():
+        for conv in blocks.view.film_blocks:
+            conv.weight.zero_()
+            conv.bias.zero_()
+    rng = np.random.default_rng(4)
+    views = torch.from_numpy(random_views(rng, 5, SMALL.frame_stack))
+    identity = (torch.ones(5, c), torch.zeros(5, c))
+    expected = plain.view(views, film=identity)
+    got = blocks.view(views, film=(torch.ones(5, 2 * c), torch.zeros(5, 2 * c)))
+    assert torch.equal(got, expected)
+    # Zero modulation but a live convolution: the branch adds relu(conv(h)) >= 0, somewhere > 0.
+    with torch.no_grad():
+        blocks.view.film_blocks[0].bias.fill_(0.5)
+    changed = blocks.view(views, film=(torch.ones(5, 2 * c), torch.zeros(5, 2 * c)))
+    assert (changed >= expected).all() and (changed > expected).any()
+
+
+def test_bad_film_blocks_are_refused_naming_the_field():
+    from higher_dist.config import ConfigError, override, validate
+    from higher_dist.config_presets import make_config
+
+    with pytest.raises(ValueError, match="film_blocks.*fusion 'film'"):
+        QNetwork(NetworkConfig(**{**SMALL.__dict__, "fusion": "concat", "film_blocks": 1}))
+    with pytest.raises(ValueError, match="film_blocks: must be an integer >= 0"):
+        ViewEncoder(4, (8,), 1, film_blocks=-1)
+    cfg = make_config("higher", "small")
+    with pytest.raises(ConfigError, match="network.film_blocks: must be >= 0"):
+        validate(override(cfg, **{"network.film_blocks": -1}))
+    with pytest.raises(ConfigError, match="network.film_blocks: 1 block.*network.fusion=film"):
+        validate(override(cfg, **{"network.film_blocks": 1, "network.fusion": "concat"}))
