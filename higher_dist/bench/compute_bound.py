@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from pathlib import Path
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_map
 from torch.utils.flop_counter import flop_registry
 
+from higher_dist.launch.layout import machine
 from higher_dist.learning.networks import QNetwork
 
 
@@ -158,23 +158,6 @@ def analytic_update_flops(net: QNetwork, mission_steps: int, double: bool = True
     return 3 * online + (f["q"] if double else 0) + online
 
 
-def simd_flags() -> str:
-    """This CPU's vector extensions that matter to torch's kernels (avx2, fma, avx512*, amx*)."""
-    try:
-        flags = next((line.split(":", 1)[1].split() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                      if line.startswith("flags")), [])
-    except OSError:
-        return "flags unknown"
-    wanted = sorted(f for f in flags if f in ("avx2", "fma") or f.startswith(("avx512", "amx")))
-    return " ".join(wanted) or "no avx2"
-
-
-def machine_line() -> str:
-    from higher_dist.reproduce.status import machine
-
-    return f"{machine()}, {simd_flags()}"
-
-
 def bound(learner, tensors: dict[str, torch.Tensor]) -> dict[str, float]:
     """The compute bound of `learner`'s update on this batch: FLOPs per sample (counted, and from layer
     shapes when the online forwards are separate), GFLOP/s of its ops alone, bound samples/s."""
@@ -200,5 +183,5 @@ def bound_lines(figures: dict[str, float], batch_size: int, measured: dict[str, 
     for name, cpu_samples in measured.items():
         lines.append(f"  {name}: {cpu_samples:,.0f} samples per CPU-second = "
                      f"{cpu_samples / f['bound_samples_per_s']:.0%} of the bound")
-    lines.append(f"machine: {machine_line()}")
+    lines.append(f"machine: {machine()}")
     return lines

@@ -13,6 +13,7 @@ actors take the others (docs/benchmarks.md, "Layout per core count", has the mea
 from __future__ import annotations
 
 import os
+import platform
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -41,6 +42,32 @@ def _cgroup_quota() -> int | None:
         return max(1, int(int(text[0]) / int(text[1])))
     except (ValueError, ZeroDivisionError):
         return None
+
+
+def machine() -> str:
+    """Cores, CPU model and vector extensions, memory, accelerator and versions: what a reader needs to
+    compare figures (the benchmarks and higher-reproduce record it)."""
+    import torch  # the learner's library; its version and device are part of the result
+
+    model, flags = "", []
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name") and not model:
+                model = line.split(":", 1)[1].strip()
+            elif line.startswith("flags") and not flags:
+                flags = line.split(":", 1)[1].split()
+    except OSError:
+        pass
+    # The extensions torch's CPU kernels pick between: figures differ across them.
+    simd = sorted(f for f in flags if f in ("avx2", "fma") or f.startswith(("avx512", "amx")))
+    cpu = (model or platform.machine()) + (f"; {' '.join(simd)}" if simd else "; no avx2" if flags else "")
+    try:
+        memory = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2 ** 30:.0f} GiB"
+    except (ValueError, OSError, AttributeError):
+        memory = ""
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return (f"{os.cpu_count()} cores ({cpu}){memory}, {gpu}, Python {platform.python_version()}, "
+            f"torch {torch.__version__}")
 
 
 def is_gpu(device: str) -> bool:

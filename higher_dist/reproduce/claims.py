@@ -27,7 +27,8 @@ from higher_dist.reproduce.figures import (EVAL_HELDOUT, EVAL_TRAIN, FINAL_EVALS
 from higher_dist.reproduce.plan import (NOISE_LEVELS, PAPER_FRAMES, PAPER_GENERATOR_EXACT, PAPER_SEEDS, TRIGGER_PAIRS,
                                         Plan, check_configs, seeds_text)
 from higher_dist.reproduce import replay_claims, trigger_claims
-from higher_dist.reproduce.status import machine, run_time
+from higher_dist.launch.layout import machine
+from higher_dist.reproduce.status import run_time
 from higher_dist.world.batched import batched_world
 from higher_dist.world.spec import RUNNING, SUCCESS, WorldSpec
 

@@ -12,14 +12,14 @@ from pathlib import Path
 from higher_dist.config import ConfigError, is_babyai_world
 from higher_dist.config_flags import positive_int, world_name
 from higher_dist.config_presets import make_config
-from higher_dist.launch.layout import available_cores
+from higher_dist.launch.layout import available_cores, machine
 from higher_dist.paths import ensure_folder
 from higher_dist.reproduce import plan as plan_mod
 from higher_dist.reproduce.archive import archive as archive_runs
 from higher_dist.reproduce.claims import write_results
 from higher_dist.reproduce.executor import Executor
 from higher_dist.reproduce.figures import draw_all
-from higher_dist.reproduce.status import estimate, human_seconds, machine
+from higher_dist.reproduce.status import estimate, human_seconds
 from higher_dist.reproduce.view import make_view
 
 

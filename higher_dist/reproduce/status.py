@@ -15,8 +15,6 @@ for more samples per frame is assumed proportionally slower.
 from __future__ import annotations
 
 import json
-import os
-import platform
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -158,25 +156,6 @@ def human_seconds(s: float) -> str:
     if s < 3 * 86400:
         return f"{s / 3600:.1f} h"
     return f"{s / 86400:.1f} days"
-
-
-def machine() -> str:
-    """Cores, CPU model, memory, accelerator and versions: what a reader needs to compare figures."""
-    import torch  # the learner's library; its version and device are part of the result
-
-    model = ""
-    try:
-        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                      if line.startswith("model name")), "")
-    except OSError:
-        pass
-    try:
-        memory = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2 ** 30:.0f} GiB"
-    except (ValueError, OSError, AttributeError):
-        memory = ""
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
-    return (f"{os.cpu_count()} cores ({model or platform.machine()}){memory}, {gpu}, Python "
-            f"{platform.python_version()}, torch {torch.__version__}")
 
 
 def run_time(plan: Plan) -> list[str]:
