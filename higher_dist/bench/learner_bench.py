@@ -300,6 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(compute_bound.bound_lines(figures, bound_size, measured)))
     summary["bound"] = {"batch_size": bound_size, **{k: round(v, 1) for k, v in figures.items()},
                         "ratio": round(measured[defaults.name] / figures["bound_samples_per_s"], 3)}
+    summary["bound_ratio"] = summary["bound"]["ratio"]  # the defaults' CPU samples/s over the bound
     summary["network"] = dataclasses.asdict(cfg.network)
     print(json.dumps(summary))
     return 0

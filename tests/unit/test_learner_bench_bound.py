@@ -72,6 +72,7 @@ def test_learner_bench_takes_network_options_and_prints_the_bound(capsys):
     last = json.loads(out[-1])
     assert last["network"]["film_blocks"] == 1
     assert last["bound"]["batch_size"] == 8 and last["bound"]["flops_per_sample"] > 0
+    assert last["bound_ratio"] == last["bound"]["ratio"] > 0  # read by `higher-bench all`'s summary
     assert any(line.startswith("compute bound at B=8") for line in out)
 
 
