@@ -23,6 +23,7 @@ from torch.utils.flop_counter import flop_registry
 
 from higher_dist.launch.layout import machine
 from higher_dist.learning.networks import QNetwork
+from higher_dist.world.language import PAD
 
 
 class _Recorder(TorchDispatchMode):
@@ -136,10 +137,10 @@ def analytic_forward_flops(net: QNetwork, mission_steps: int) -> dict[str, int]:
     view = net.view
     q, size = 0, view.view_size
     for conv in view.convs:
-        size = size - 3 + 1 + 2 * conv.padding[0]
-        q += 2 * conv.in_channels * conv.out_channels * 9 * size * size
-    for conv in view.film_blocks:
-        q += 2 * conv.in_channels * conv.out_channels * 9 * size * size
+        size = size - conv.kernel_size[0] + 1 + 2 * conv.padding[0]
+        q += 2 * conv.in_channels * conv.out_channels * conv.kernel_size[0] * conv.kernel_size[1] * size * size
+    for conv in view.film_blocks:  # padded: the map keeps its size
+        q += 2 * conv.in_channels * conv.out_channels * conv.kernel_size[0] * conv.kernel_size[1] * size * size
     linears = [net.trunk] + ([net.film] if net.fusion == "film" else [])
     linears += [net.value, net.advantage] if net.dueling else [net.q]
     q += sum(2 * m.in_features * m.out_features for m in linears)
@@ -164,7 +165,7 @@ def bound(learner, tensors: dict[str, torch.Tensor]) -> dict[str, float]:
     b = int(tensors["action"].shape[0])
     rec = count_update(learner, tensors)
     seconds = time_calls(rec)
-    steps = int((tensors["mission"] != 0).sum(dim=1).max())
+    steps = int((tensors["mission"] != PAD).sum(dim=1).max())
     out = {"flops_per_sample": rec.total / b, "gflops": rec.total / seconds / 1e9, "bound_samples_per_s": b / seconds,
            "peak_gflops": peak_gflops()}
     if not learner.cfg.joint_online:
