@@ -49,3 +49,15 @@ def test_every_key_the_learner_records_is_in_the_metrics_reference():
 
     assert core.updates > 0 and m.LOSS in record
     assert not [key for key in record if not covered(key)]
+
+
+def test_the_configuration_reference_names_what_a_babyai_level_changes():
+    from higher_dist.config_presets import make_config
+
+    table = docs_gen.configuration_md()
+    level, ours = make_config("higher", "BabyAI-PickupDist-v0"), make_config("higher", "paper")
+    changed = [path for path, _, _ in docs_gen._leaves(level)
+               if docs_gen._get(level, path) != docs_gen._get(ours, path)]
+    assert "frames" in changed and "generator.batch_size" in changed
+    rows = {line.split("`")[1]: line for line in table.splitlines() if line.startswith("| `")}
+    assert not [path for path in changed if "BabyAI level" not in rows[path]]
