@@ -69,6 +69,14 @@ def cell_attrs(cells) -> np.ndarray:
     return np.stack([b[:, 1] - 1, b[:, 0] - KIND_KEY, b[:, 2] - 1, b[:, 3] - 1], axis=1)
 
 
+def pick_reward(picked, goal, shaping: bool) -> np.ndarray:
+    """The reward of picking objects `picked (n, 4)` when the goal is `goal (n, 4)`: 1 for a copy of the
+    goal, else 0; with reward shaping (DQN+reward), 0.25 per attribute the picked object shares with it.
+    What `BatchedFetchAttr.step` pays and what a received episode's last reward must be."""
+    matches = (np.asarray(picked) == np.asarray(goal)).sum(axis=1)
+    return (0.25 * matches if shaping else matches == 4).astype(np.float32)
+
+
 @dataclass
 class StepResult:
     """What one batched step returns. Per-episode fields describe the episode the step belonged to
@@ -301,12 +309,8 @@ class BatchedFetchAttr:
         if picks.any():
             # Any copy of the goal counts: compare attribute codes, not object identities.
             picked[picks] = cell_attrs(front_cell[picks])
-            matches = (picked[picks] == self._goal[picks]).sum(axis=1)
-            success = matches == 4
-            if self.cfg.reward_shaping:
-                reward[picks] = 0.25 * matches
-            else:
-                reward[picks] = success
+            success = (picked[picks] == self._goal[picks]).all(axis=1)
+            reward[picks] = pick_reward(picked[picks], self._goal[picks], self.cfg.reward_shaping)
             outcome[picks] = np.where(success, SUCCESS, WRONG_PICK)
         outcome[truncated] = TIMEOUT
         final_view = self._views()
@@ -321,3 +325,47 @@ class BatchedFetchAttr:
                           truncated=truncated, final_view=final_view, outcome=outcome, length=length,
                           picked=picked, goal=goal, mission_done=mission_done, final_dir=final_dir,
                           pick_step=np.where(picks, length - 1, -1).astype(np.int32))
+
+
+class FetchAttrEpisodes:
+    """What a FetchAttr episode means (the family's part of world/episode_rules.py): a pick ends the
+    episode, every object names all four attributes, and the reward is `pick_reward`'s."""
+
+    pick_action = ACTION_PICK
+
+    @staticmethod
+    def picks(spec, b) -> np.ndarray:
+        """Which episodes picked: any that did not time out (their pick_step is checked with the outcome)."""
+        return b.outcome != TIMEOUT
+
+    @staticmethod
+    def attributes_ok(spec, b, picks) -> np.ndarray:
+        picked_ok = np.where(picks, (b.picked >= 0).all(axis=1), (b.picked == -1).all(axis=1))
+        return (b.goal >= 0).all(axis=1) & picked_ok
+
+    @staticmethod
+    def cells_ok(spec, frames) -> np.ndarray:
+        """An object cell shows colour, shade and size; unseen, empty and wall cells show none."""
+        attrs_set = frames[..., 1:] > 0
+        return np.where(frames[..., 0] >= KIND_KEY, attrs_set.all(axis=-1), ~attrs_set.any(axis=-1))
+
+    @staticmethod
+    def outcome_ok(spec, b, last_action) -> np.ndarray:
+        """A time-out runs to the step limit without a pick; otherwise the last step is the pick, a success
+        exactly when the picked object is the goal."""
+        match = (b.picked == b.goal).all(axis=1)
+        return np.where(b.outcome == TIMEOUT, (b.lengths == spec.max_steps) & (b.pick_step == -1),
+                        (last_action == ACTION_PICK) & (b.pick_step == b.lengths - 1) & (match == (b.outcome == SUCCESS)))
+
+    @staticmethod
+    def reward(spec, b) -> np.ndarray:
+        """The last step's reward of an original episode: nothing on a time-out, else the pick's."""
+        return np.where(b.outcome == TIMEOUT, 0.0, pick_reward(b.picked, b.goal, spec.reward_shaping))
+
+    @staticmethod
+    def mission_ok(spec, named) -> bool:
+        """The mission names an object of this world's attribute values (a small world uses a subset)."""
+        return all(int(v) in values for v, values in zip(named, spec.world_values))
+
+
+FETCHATTR_EPISODES = FetchAttrEpisodes()
