@@ -47,8 +47,8 @@ class LearnerCore:
     def add_episodes(self, episodes: list[Episode]) -> None:
         self._settle()
         count_copies = self.cfg.replay.ratio_counts == "transitions"
+        self.replay.add_episodes(episodes)  # all or none: a failure leaves the replay and the counts as they were
         for ep in episodes:
-            self.replay.add_episode(ep)
             # By default relabelled copies are stored but not counted: equal updates per env frame.
             if count_copies or not ep.relabelled:
                 self.limiter.record_insert(ep.length)

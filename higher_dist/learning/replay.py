@@ -37,6 +37,9 @@ __all__ = ["PrioritizedReplay", "SumTree", "TransitionBatch", "ORIGINS"]
 # Composition keys; an episode's origin code is its index here.
 ORIGINS = (*OUTCOME_NAMES, "relabelled")
 _MAX_TOKEN = np.iinfo(np.int16).max  # missions are stored as int16 word ids
+# The state an insert writes: per slot, and per episode record.
+_SLOT_ARRAYS = ("_frames", "_action", "_return", "_discount", "_next_offset", "_history", "_episode", "_generation")
+_RECORD_ARRAYS = ("_ep_start", "_ep_slots", "_ep_origin", "_ep_mission")
 
 
 @dataclass
@@ -109,9 +112,25 @@ class PrioritizedReplay:
 
     def add_episode(self, ep: Episode) -> None:
         """Store an episode's T transitions (T+1 slots), evicting the oldest episodes as needed."""
-        steps = ep.length
+        self.add_episodes([ep])
+
+    def add_episodes(self, episodes: list[Episode]) -> None:
+        """Store a batch of episodes, all or none: every episode is checked and prepared before anything is
+        written, and a write that fails part-way puts the replay back exactly as it was (slots, records, sum
+        tree, counters) before the error goes on: no half-stored batch is left for a checkpoint."""
+        prepared = [self._prepare(ep) for ep in episodes]
+        undo = _InsertUndo(self)
+        try:
+            for p in prepared:
+                self._write(p, undo)
+        except BaseException:
+            undo.roll_back()
+            raise
+
+    def _prepare(self, ep: Episode) -> tuple:
+        """An episode checked and turned into what `_write` stores; nothing in the replay changes."""
+        steps, v = ep.length, self.view_size
         n_slots = steps + 1
-        v = self.view_size
         if steps < 1:
             raise ValueError("an episode needs at least one action")
         if n_slots > self.capacity:
@@ -124,18 +143,22 @@ class PrioritizedReplay:
         mission = np.asarray(ep.mission)
         if mission.shape != (self.mission_len,) or mission.min() < 0 or mission.max() > _MAX_TOKEN:
             raise ValueError(f"episode mission must be ({self.mission_len},) word ids in [0, {_MAX_TOKEN}]")
-
         # A time-out is a truncation (bootstrapped) unless the run stores it as the paper's code did.
         terminal = ep.terminated or self.cfg.timeouts_terminal
         returns, discounts, offsets = self._n_step_targets(ep.rewards, terminal)
         actions = np.zeros(n_slots, dtype=np.uint8)
         actions[:steps] = ep.actions
+        return steps, ep.frames, actions, returns, discounts, offsets, mission, ORIGINS.index(ep.origin)
+
+    def _write(self, prepared: tuple, undo: _InsertUndo) -> None:
+        steps, frames, actions, returns, discounts, offsets, mission, origin = prepared
+        n_slots = steps + 1
         span = self._evict_for(n_slots)
-        start = self._cursor
-        record = self._next_serial % self._n_records
+        start, record = self._cursor, self._next_serial % self._n_records
+        undo.save(start, span, record)
         for slot, lo, hi in self._runs(start, n_slots):
             end = slot + hi - lo
-            self._frames[slot:end] = ep.frames[lo:hi]
+            self._frames[slot:end] = frames[lo:hi]
             self._action[slot:end] = actions[lo:hi]
             self._return[slot:end] = returns[lo:hi]
             self._discount[slot:end] = discounts[lo:hi]
@@ -152,8 +175,6 @@ class PrioritizedReplay:
         priorities[:steps] = max(self._tree.max_priority, 1.0)
         for slot, lo, hi in self._runs(start, span):
             self._tree.update_run(slot, priorities[lo:hi])
-
-        origin = ORIGINS.index(ep.origin)
         self._ep_start[record] = start
         self._ep_slots[record] = n_slots
         self._ep_origin[record] = origin
@@ -288,8 +309,7 @@ class PrioritizedReplay:
 
     # ------------------------------------------------------------------------------- checkpoint
 
-    _ARRAYS = ("_frames", "_action", "_return", "_discount", "_next_offset", "_history", "_episode",
-               "_generation", "_ep_start", "_ep_slots", "_ep_origin", "_ep_mission", "_counts")
+    _ARRAYS = (*_SLOT_ARRAYS, *_RECORD_ARRAYS, "_counts")
     _INTS = ("_cursor", "_writes", "_first_live", "_next_serial", "_size")
 
     def state_dict(self) -> dict:
@@ -327,6 +347,36 @@ class PrioritizedReplay:
         self._tree.load_state_dict({"capacity": self.capacity, "tree": state["tree"],
                                     "max_priority": state["tree_max_priority"]})
         _pcg64_from_array(self._rng, state["rng_state"])
+
+
+class _InsertUndo:
+    """What one batch insert changes, saved just before each change (the slots and records it reaches, not
+    a copy of the replay), so that a failure part-way can put the replay back as it was."""
+
+    def __init__(self, replay: PrioritizedReplay):
+        self.replay, self.saved = replay, []
+        self.ints = {name: getattr(replay, name) for name in replay._INTS}
+        self.counts, self.max_priority = replay._counts.copy(), replay._tree.max_priority
+
+    def save(self, start: int, span: int, record: int) -> None:
+        """Before an episode is written from slot `start` over `span` slots into `record`."""
+        r = self.replay
+        pieces = [(slot, slot + hi - lo, _SLOT_ARRAYS) for slot, lo, hi in r._runs(start, span)]
+        for lo, hi, names in pieces + [(record, record + 1, _RECORD_ARRAYS)]:
+            leaves = r._tree.get(np.arange(lo, hi)) if names is _SLOT_ARRAYS else None
+            self.saved.append((lo, leaves, {name: getattr(r, name)[lo:hi].copy() for name in names}))
+
+    def roll_back(self) -> None:
+        r = self.replay
+        for lo, leaves, old in reversed(self.saved):  # newest first: a slot written twice ends as it began
+            for name, value in old.items():
+                getattr(r, name)[lo:lo + len(value)] = value
+            if leaves is not None:
+                r._tree.restore_run(lo, leaves)
+        r._tree.max_priority = self.max_priority
+        r._counts[...] = self.counts
+        for name, value in self.ints.items():
+            setattr(r, name, value)
 
 
 def _pcg64_to_array(rng: np.random.Generator) -> np.ndarray:

@@ -101,6 +101,11 @@ class SumTree:
         _check_priorities(values)
         self._write_run(first, values)
 
+    def restore_run(self, first: int, values: np.ndarray) -> None:
+        """Put back leaves first, first+1, ... as they were read before a write (a replay's undo of an
+        insert that failed part-way); the caller puts back `max_priority` too."""
+        self._write_run(first, np.asarray(values, dtype=np.float64))
+
     def _write_run(self, first: int, values: np.ndarray) -> None:
         lo = first + self.n_leaves
         self.tree[lo:lo + values.size] = values
