@@ -168,10 +168,13 @@ def _metric_entries():
             if line.startswith("# -- "):
                 section = line.strip("# -")
                 break
-        if not (isinstance(node, ast.Assign) and isinstance(node.value, ast.Constant)
-                and isinstance(node.value.value, str)):
+        # A key written as a literal or built from others (SUCCESS_EVAL_TRAIN + AVERAGED_SUFFIX): listed by its
+        # full name either way, so a search for it finds it. Tuples of keys (RELABEL_KEYS) are not keys.
+        if not (isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name)
+                and isinstance(getattr(metrics_mod, node.targets[0].id, None), str)):
             continue
-        name, key = node.targets[0].id, node.value.value
+        name = node.targets[0].id
+        key = getattr(metrics_mod, name)
         text = comments.get(node.lineno, "")
         match = re.match(r"(.*?)\s*\[([^\]]+)\]$", text)
         meaning, unit = (match[1], match[2]) if match else (text, "-")
@@ -187,7 +190,8 @@ def metrics_md() -> str:
              "Every key of a run's records: one JSON object per line of `RUN_DIR/metrics.jsonl` (every "
              "`stats_every_s`), the same record in each telemetry message to `higher-dashboard`, and one "
              "TensorBoard scalar per number with `--tensorboard`. `*` stands for the rest of a key "
-             "(`replay_success`, `success_rate_eval_train_se`). A value not measured yet is `null`.", ""]
+             "(`replay_success`). A value not measured yet is `null`. The last section lists the columns of each row of "
+             "`roles`, and what the roles report to the learner.", ""]
     section = None
     for group, key, meaning, unit in _metric_entries():
         if group != section:

@@ -33,13 +33,16 @@ SUCCESS_EVAL_HELDOUT = "success_rate_eval_heldout"  # greedy success on held-out
 SUCCESS_TRAIN = "success_rate_train"  # success of the episodes the learner took in, while exploring [fraction]
 EVAL_FRAMES = "eval_frames"  # env frames the evaluated weights had seen (every record repeats the latest) [frames]
 SE_SUFFIX = "_se"  # + on an evaluation key: its standard error, sqrt(p (1 - p) / episodes) [fraction]
-EVAL_KEYS = (SUCCESS_EVAL_TRAIN, SUCCESS_EVAL_HELDOUT, SUCCESS_EVAL_TRAIN + SE_SUFFIX,
-             SUCCESS_EVAL_HELDOUT + SE_SUFFIX)
 # With dqn.average_tau > 0 the same evaluation (same goals) also scores the moving average of the
 # online weights, under the same names + this suffix (before any _se).
 AVERAGED_SUFFIX = "_averaged"  # + on an evaluation key: the same evaluation of the averaged weights [fraction]
-SUCCESS_EVAL_TRAIN_AVERAGED = SUCCESS_EVAL_TRAIN + AVERAGED_SUFFIX
-SUCCESS_EVAL_HELDOUT_AVERAGED = SUCCESS_EVAL_HELDOUT + AVERAGED_SUFFIX
+# The full names, so that a search for one finds it (docs/metrics.md lists each).
+SUCCESS_EVAL_TRAIN_SE = SUCCESS_EVAL_TRAIN + SE_SUFFIX  # standard error of success_rate_eval_train [fraction]
+SUCCESS_EVAL_HELDOUT_SE = SUCCESS_EVAL_HELDOUT + SE_SUFFIX  # standard error of success_rate_eval_heldout [fraction]
+SUCCESS_EVAL_TRAIN_AVERAGED = SUCCESS_EVAL_TRAIN + AVERAGED_SUFFIX  # greedy success of the averaged weights on training goals [fraction]
+SUCCESS_EVAL_HELDOUT_AVERAGED = SUCCESS_EVAL_HELDOUT + AVERAGED_SUFFIX  # greedy success of the averaged weights on held-out goals [fraction]
+SUCCESS_EVAL_TRAIN_AVERAGED_SE = SUCCESS_EVAL_TRAIN_AVERAGED + SE_SUFFIX  # standard error of success_rate_eval_train_averaged [fraction]
+SUCCESS_EVAL_HELDOUT_AVERAGED_SE = SUCCESS_EVAL_HELDOUT_AVERAGED + SE_SUFFIX  # standard error of success_rate_eval_heldout_averaged [fraction]
 
 # -- replay and learning --------------------------------------------------------------------------
 REPLAY_SIZE = "replay_size"  # transitions in the replay [transitions]
@@ -56,26 +59,60 @@ LEARNING_RATE = "learning_rate"  # the optimiser's, as of the last update (dqn.l
 SKIPPED_UPDATES = "skipped_updates"  # steps refused for a non-finite gradient [count]
 LOSS_COMPILED = "loss_compiled"  # 1 once the update runs the torch.compile'd loss [flag]
 COMPILE_PENDING = "compile_pending"  # 1 while that compile runs in the background (updates run eager) [flag]
+# What one DQN update reports (DQNLearner.update), each key every time.
+DQN_KEYS = (LOSS, Q_MEAN, TD_ABS_MEAN, TARGET_MEAN, GRAD_NORM, SKIPPED_UPDATES, COMPILE_PENDING, LOSS_COMPILED)
 
 # -- relabelling ----------------------------------------------------------------------------------
+# A relabel strategy's `metrics()` (learning/hindsight/relabel.py) reports these keys, every one, None
+# where the strategy has no such thing (the expert has no generator); the record carries them as they come.
 RELABEL_STRATEGY = "relabel_strategy"  # what relabels wrong picks: none, expert, noisy or learned [name]
-GENERATOR_VAL_ACCURACY = "generator_val_accuracy"  # generator exact match on its validation pairs, latest [fraction]
-GENERATOR_VAL_AT_PAIRS = "generator_val_at_pairs"  # dataset size at that evaluation [pairs]
-RELABEL_DATASET_SIZE = "relabel_dataset_size"  # (view, instruction) pairs in the generator's dataset [pairs]
-RELABEL_GATE_OPEN = "relabel_gate_open"  # whether the generator relabels yet (enough pairs and accuracy) [flag]
+RELABEL_CONSIDERED = "relabel_considered"  # wrong picks handed to the strategy [count]
+RELABELS_MADE = "relabels_made"  # relabelled copies the strategy made [count]
 RELABEL_ACCURACY = "relabel_accuracy"  # relabels that name the picked object, last relabel.RECENT_RELABELS [fraction]
 RELABEL_ACCURACY_TOTAL = "relabel_accuracy_total"  # the same since the start of the run [fraction]
-RELABEL_UNPARSEABLE = "relabel_unparseable"  # generated instructions the grammar cannot parse, dropped [count]
 RELABEL_CONTRADICTING = "relabel_contradicting"  # learned relabels naming the failed goal, dropped [count]
+RELABEL_UNPARSEABLE = "relabel_unparseable"  # generated instructions the grammar cannot parse, dropped [count]
+RELABEL_GATED_OFF = "relabel_gated_off"  # wrong picks not relabelled because the generator's gate was shut [count]
+RELABEL_GATE_OPEN = "relabel_gate_open"  # whether the generator relabels yet (enough pairs and accuracy) [flag]
+RELABEL_DATASET_SIZE = "relabel_dataset_size"  # (view, instruction) pairs in the generator's dataset [pairs]
+GENERATOR_VAL_ACCURACY = "generator_val_accuracy"  # generator exact match on its validation pairs, latest [fraction]
+GENERATOR_VAL_AT_PAIRS = "generator_val_at_pairs"  # dataset size at that evaluation [pairs]
+GENERATOR_TRAIN_STEPS = "generator_train_steps"  # the generator's training updates [count]
+GENERATOR_EVALUATIONS = "generator_evaluations"  # the generator's validation measurements [count]
 GENERATOR_LOSS = "generator_loss"  # the generator's training loss, last update [loss]
+RELABEL_KEYS = (RELABEL_STRATEGY, RELABEL_CONSIDERED, RELABELS_MADE, RELABEL_ACCURACY, RELABEL_ACCURACY_TOTAL,
+                RELABEL_CONTRADICTING, RELABEL_UNPARSEABLE, RELABEL_GATED_OFF, RELABEL_GATE_OPEN, RELABEL_DATASET_SIZE,
+                GENERATOR_VAL_ACCURACY, GENERATOR_VAL_AT_PAIRS, GENERATOR_TRAIN_STEPS, GENERATOR_EVALUATIONS,
+                GENERATOR_LOSS)
+# The relabeler service's own (cluster runs only).
 RELABELS_PER_S = "relabels_per_s"  # relabelled copies made per second [1/s]
+GENERATOR_UPDATES_OWED = "generator_updates_owed"  # generator updates the relabeler is behind its pace; past a few slices it stops reading episodes [updates]
+# What the record takes from the relabeler's stats (None until the relabeler first reports).
+RELABELER_KEYS = RELABEL_KEYS + (RELABELS_PER_S, GENERATOR_UPDATES_OWED)
 
 # -- health ---------------------------------------------------------------------------------------
 REJECTED = "rejected_messages"  # every role's dropped messages, summed [count]
 LEARNER_REJECTED = "learner_rejected"  # messages the learner dropped [count]
 REJECTS_BY_REASON = "rejects_by_reason"  # dropped messages over all roles, by reason [{reason: count}]
 HANDLER_ERRORS = "handler_errors"  # messages whose handling raised unexpectedly (logged, loop went on) [count]
-ROLES = "roles"  # one row per role: role, id, host, pid, state, heartbeat age, frames/s, lag, restarts [rows]
+ROLES = "roles"  # one row per role, the learner's first, with the columns below [rows]
+
+# -- the roles table: the columns of each row of `roles` ---------------------------------------------
+# The roles report to the learner in heartbeats and stats messages (roles/client.py) under the record's
+# own names where they mean the same for one role (frames, frames_per_s, weights_version, epsilon_mean,
+# success_rate_train, episodes, relabels_made, rejected_messages, handler_errors), plus PID and RESTARTS.
+ROW_ROLE = "role"  # learner, actor, relabeler or dashboard [name]
+ROW_ID = "id"  # the role's number [index]
+ROW_HOST = "host"  # the host it runs on [name]
+ROW_PID = "pid"  # its process id [id]
+ROW_STATE = "state"  # alive, dead (silent past the heartbeat limit) or stopped [name]
+ROW_HEARTBEAT_AGE = "heartbeat_age_s"  # time since it was last heard [s]
+ROW_WEIGHTS_LAG = "weights_lag"  # updates its weights are behind the learner's [updates]
+ROW_RESTARTS = "restarts"  # times the launcher restarted it [count]
+ROW_REJECTED = "rejected"  # messages it dropped [count]
+REJECT_STAT_PREFIX = "reject_"  # + a reason: a role's dropped messages under that reason, in its stats [count]
+ROLE_ROW_KEYS = (ROW_ROLE, ROW_ID, ROW_HOST, ROW_PID, ROW_STATE, ROW_HEARTBEAT_AGE, FRAMES_PER_S, ROW_WEIGHTS_LAG,
+                 ROW_RESTARTS, ROW_REJECTED)
 
 LABELS: dict[str, str] = {
     FRAMES: "env frames",
@@ -102,17 +139,3 @@ def label(name: str) -> str:
 
 def replay_origin(origin: str) -> str:
     return REPLAY_ORIGIN_PREFIX + origin
-
-
-def relabel_record(strategy_metrics: dict) -> dict:
-    """The record's relabelling fields from a relabel strategy's `metrics()`: the same keys whether the
-    strategy runs in the single-process runner or in the relabeler service."""
-    s = strategy_metrics
-    return {
-        RELABEL_STRATEGY: s.get("strategy"), GENERATOR_VAL_ACCURACY: s.get("val_accuracy"),
-        RELABEL_DATASET_SIZE: s.get("dataset_size"), RELABEL_GATE_OPEN: s.get("gate_open"),
-        GENERATOR_VAL_AT_PAIRS: s.get("val_at_pairs"),
-        RELABEL_ACCURACY: s.get("relabel_accuracy"), RELABEL_ACCURACY_TOTAL: s.get("relabel_accuracy_total"),
-        RELABEL_UNPARSEABLE: s.get("unparseable"), RELABEL_CONTRADICTING: s.get("contradicting"),
-        GENERATOR_LOSS: s.get("loss"),
-    }

@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from higher_dist import metrics as m
 from higher_dist.config import DQNConfig, NetworkConfig
 from higher_dist.learning.compiled_loss import CompiledLoss
 from higher_dist.learning.devices import resolve_device
@@ -115,7 +116,7 @@ def dqn_loss(
 def _metrics(loss: torch.Tensor, td_abs: torch.Tensor, q_mean: torch.Tensor, y_mean: torch.Tensor) -> dict[str, float]:
     # One host transfer for the four figures (one device sync on a GPU instead of four).
     values = torch.stack([loss.detach(), q_mean, td_abs.mean(), y_mean]).tolist()
-    return dict(zip(("loss", "q_mean", "td_abs_mean", "target_mean"), values))
+    return dict(zip((m.LOSS, m.Q_MEAN, m.TD_ABS_MEAN, m.TARGET_MEAN), values))
 
 
 def learning_rate_at(cfg: DQNConfig, frames: int) -> float:
@@ -208,12 +209,12 @@ class DQNLearner:
         self.updates += 1
         self._update_target()
         self._update_average()
-        metrics["grad_norm"] = grad_norm
-        metrics["skipped_updates"] = float(self.skipped_updates)
+        metrics[m.GRAD_NORM] = grad_norm
+        metrics[m.SKIPPED_UPDATES] = float(self.skipped_updates)
         c = self.compiled
         # 1 while dqn.compile's background compile runs (the cluster benchmark waits for it to end).
-        metrics["compile_pending"] = float(c is not None and c.started and not c.ready and not c.failed)
-        metrics["loss_compiled"] = float(self._ran_compiled)
+        metrics[m.COMPILE_PENDING] = float(c is not None and c.started and not c.ready and not c.failed)
+        metrics[m.LOSS_COMPILED] = float(self._ran_compiled)
         return priorities.cpu().numpy().astype(np.float32, copy=False), metrics
 
     def _loss_terms(self, tensors: dict[str, torch.Tensor]):

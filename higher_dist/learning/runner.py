@@ -123,7 +123,7 @@ class SingleProcessRunner:
 
     def metrics(self, frames_done: int, elapsed: float) -> dict:
         record = self.core.metrics()
-        record.update(m.relabel_record(self.relabeler.metrics()))
+        record.update(self.relabeler.metrics())
         record.update({
             m.FRAMES: frames_done, m.REJECTED: 0, m.PRESET: self.cfg.preset,
             m.WORLD: self.cfg.world.name, m.FRAMES_BUDGET: self.cfg.frames,

@@ -41,7 +41,7 @@ def thin_records(records: list[dict], every: int = THIN_FRAMES) -> list[dict]:
     kept: list[dict] = []
     next_frames, next_time, previous_eval = 0.0, float("-inf"), None
     for i, record in enumerate(records):
-        frames, when = record.get("frames"), record.get("time")
+        frames, when = record.get(m.FRAMES), record.get(m.TIME)
         evaluated = tuple(record.get(k) for k in EVAL_KEYS)
         new_eval = evaluated != previous_eval  # every record repeats the latest evaluation
         on_step = is_number(frames) and (frames >= next_frames or frames <= START_FRAMES)

@@ -54,7 +54,7 @@ def trim_metrics_to_checkpoint(run_dir: Path) -> int:
     state = RunDir(run_dir).load_checkpoint("learner")
     frames = int(state["core"]["counters"]["frames"]) if state else 0
     records = read_metrics(run_dir / "metrics.jsonl")
-    kept = [r for r in records if isinstance(r.get("frames"), (int, float)) and r["frames"] <= frames]
+    kept = [r for r in records if isinstance(r.get(m.FRAMES), (int, float)) and r[m.FRAMES] <= frames]
     if len(kept) != len(records):
         atomic_write_bytes(run_dir / "metrics.jsonl", "".join(json.dumps(r) + "\n" for r in kept).encode())
     return frames

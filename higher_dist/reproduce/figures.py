@@ -99,7 +99,7 @@ def final_stats(group: Group | None, key: str) -> dict | None:
     values = [v for v in (final(r, key) for r in group.runs) if v is not None]
     if not values:
         return None
-    frames = min(int(max((rec.get("frames") or 0) for rec in r.records)) for r in group.runs)
+    frames = min(int(max((rec.get(m.FRAMES) or 0) for rec in r.records)) for r in group.runs)
     return {"mean": float(np.mean(values)), "std": float(np.std(values)), "n": len(values), "frames": frames,
             "values": [float(v) for v in values]}
 

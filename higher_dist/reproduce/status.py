@@ -19,6 +19,7 @@ import statistics
 from dataclasses import dataclass
 from pathlib import Path
 
+from higher_dist import metrics as m
 from higher_dist.reproduce.plan import Plan, RunSpec, default_parallel
 from higher_dist.rundir import last_record as _tail_record, read_metrics
 
@@ -38,7 +39,7 @@ def last_record(path: Path) -> dict:
 def frames_done(run: RunSpec, path: Path) -> int:
     if run.kind == "generator":
         return run.pairs if (path / "result.json").exists() else 0
-    return int(last_record(path).get("frames") or 0)
+    return int(last_record(path).get(m.FRAMES) or 0)
 
 
 def run_state(run: RunSpec, path: Path) -> str:
@@ -56,10 +57,10 @@ def run_state(run: RunSpec, path: Path) -> str:
 def measured_fps(path: Path) -> float | None:
     """Frames/s of one run from its metrics: frames over running time, gaps (stops) left out."""
     records = [r for r in read_metrics(path / "metrics.jsonl")
-               if isinstance(r.get("time"), (int, float)) and isinstance(r.get("frames"), (int, float))]
+               if isinstance(r.get(m.TIME), (int, float)) and isinstance(r.get(m.FRAMES), (int, float))]
     frames = seconds = 0.0
     for a, b in zip(records, records[1:]):
-        dt, df = b["time"] - a["time"], b["frames"] - a["frames"]
+        dt, df = b[m.TIME] - a[m.TIME], b[m.FRAMES] - a[m.FRAMES]
         if 0 < dt <= MAX_GAP_S and df >= 0:
             frames, seconds = frames + df, seconds + dt
     return frames / seconds if seconds >= 5 and frames > 0 else None

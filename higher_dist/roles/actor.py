@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import zmq
 
+from higher_dist import metrics as m
 from higher_dist.launch.channels import open_channel
 from higher_dist.learning.acting import act
 from higher_dist.learning.agent import AgentBuilder
@@ -69,10 +70,10 @@ def run_actor(learner: str, actor_id: int | None = None, security: Security | No
                         policy.load(arrays)
                         version = collector.weights_version = new_version
             if version < 0:
-                client.heartbeat({"frames": frames, "weights_version": version})
+                client.heartbeat({m.FRAMES: frames, m.WEIGHTS_VERSION: version})
                 continue
             if not out.flush(WAIT_MS):
-                client.heartbeat({"frames": frames, "weights_version": version})
+                client.heartbeat({m.FRAMES: frames, m.WEIGHTS_VERSION: version})
                 continue
             eps = agent.epsilons(idx, collector.n_envs, learner_frames)
             episodes = act(collector, policy, eps, rng, explorer)
@@ -86,11 +87,11 @@ def run_actor(learner: str, actor_id: int | None = None, security: Security | No
                 out.put(codec.encode("episodes", fields, arrays, sender=f"actor{idx}"))
                 buffer = []
                 send_timer.reset(now)
-            client.heartbeat({"frames": frames, "weights_version": version})
+            client.heartbeat({m.FRAMES: frames, m.WEIGHTS_VERSION: version})
             if stats(now):
-                client.stats({"frames": frames, "frames_per_s": round(frames / max(now - t0, 1e-9), 1),
-                              "weights_version": version, "epsilon_mean": round(float(np.mean(eps)), 4),
-                              "success_rate": round(successes / max(finished, 1), 4)})
+                client.stats({m.FRAMES: frames, m.FRAMES_PER_S: round(frames / max(now - t0, 1e-9), 1),
+                              m.WEIGHTS_VERSION: version, m.EPSILON_MEAN: round(float(np.mean(eps)), 4),
+                              m.SUCCESS_TRAIN: round(successes / max(finished, 1), 4)})
     finally:
         weights_sub.close(linger=0)
         out.socket.close(linger=200)

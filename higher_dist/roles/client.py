@@ -17,11 +17,11 @@ from typing import Any
 import torch
 import zmq
 
+from higher_dist import metrics as m
 from higher_dist.config import Config, from_dict
 from higher_dist.launch.channels import open_channel
 from higher_dist.launch.topology import Endpoints
 from higher_dist.roles.loop import Every
-from higher_dist.roles.registry import REJECT_STAT_PREFIX
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.security import Security
 from higher_dist.wire.schema import PROTOCOL_VERSION
@@ -110,14 +110,14 @@ class ControlClient:
         if state == "running" and not self._heartbeats.due():
             return
         self._heartbeats.reset()
-        counters = dict(counters, pid=os.getpid())
+        counters = {**counters, m.ROW_PID: os.getpid()}
         self.send("heartbeat", {"role": self.role, "id": self.index, "state": state,
                                 "counters": {k: float(v) for k, v in counters.items()
                                              if v is not None and math.isfinite(float(v))}})
 
     def stats(self, values: dict[str, Any]) -> None:
-        values = dict(values, restarts=self.restarts, rejected_messages=self.rejects.total,
-                      **{REJECT_STAT_PREFIX + reason: n for reason, n in self.rejects.counts().items()})
+        values = {**values, m.ROW_RESTARTS: self.restarts, m.REJECTED: self.rejects.total,
+                  **{m.REJECT_STAT_PREFIX + reason: n for reason, n in self.rejects.counts().items()}}
         # The wire refuses NaN/inf; a metric that has none yet travels as nil.
         values = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in values.items()}
         self.send("stats", {"role": self.role, "id": self.index, "values": values})

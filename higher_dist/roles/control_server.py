@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import zmq
 
+from higher_dist import metrics as m
 from higher_dist.config import Config
 from higher_dist.launch.channels import open_channel
 from higher_dist.launch.topology import Endpoints
 from higher_dist.roles.client import REJOIN
-from higher_dist.roles.loop import HandlerGuard
 from higher_dist.roles.registry import NoSlot, RoleRegistry
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.schema import PROTOCOL_VERSION
@@ -54,14 +54,17 @@ class ControlServer:
         """How many of a role the run has numbers for (actors: the config's count; dashboards: any)."""
         return {"actor": self.cfg.actors, "relabeler": 1}.get(role)
 
-    def poll(self, guard: HandlerGuard, limit: int = 100) -> None:
-        """Handle up to `limit` waiting messages without blocking, each under `guard`."""
+    def poll(self, limit: int = 100) -> None:
+        """Handle up to `limit` waiting messages without blocking. A message that fails decoding is dropped
+        and counted there (wire/sockets.py); one that passed is fully typed by its schema, and `handle`
+        answers what a peer may not do with a refusal it counts. So an exception of `handle` is the
+        learner's own (an internal error), not the peer's."""
         for _ in range(limit):
             if not self.sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
                 return
             routed = sockets.recv_routed_from(self.sock, 0, self.rejects, "control", self.refuse_version)
             if routed is not None:
-                guard(routed[1], self.handle, *routed)
+                self.handle(*routed)
 
     def refuse(self, identity: bytes, reason: str, detail: str) -> None:
         """A refusal the peer is told and the learner counts; never fatal to either."""
@@ -105,7 +108,7 @@ class ControlServer:
         elif msg.type == "heartbeat":
             info.stopped = f["state"] == "stopping"
             info.stats.update(f["counters"])
-            info.pid = int(f["counters"].get("pid", info.pid))
+            info.pid = int(f["counters"].get(m.ROW_PID, info.pid))
         elif msg.type == "stats":
             info.stats.update(f["values"])
         else:

@@ -176,26 +176,26 @@ def cluster_panel(record: dict[str, Any], narrow: bool = False) -> Panel:
                          min_width=None if wide_name == "host" else len(narrow_name if narrow else wide_name))
     roles = record.get(m.ROLES)
     roles = [r for r in roles if isinstance(r, dict)] if isinstance(roles, list) else []
-    roles.sort(key=lambda r: (ROLE_ORDER.get(r.get("role"), 9), r.get("id") if _is_number(r.get("id")) else 0))
+    roles.sort(key=lambda r: (ROLE_ORDER.get(r.get(m.ROW_ROLE), 9), r.get(m.ROW_ID) if _is_number(r.get(m.ROW_ID)) else 0))
     for r in roles:
-        state = r.get("state")
+        state = r.get(m.ROW_STATE)
         # A dead role must jump out: the whole row goes red, the state cell says GONE.
         label = "GONE (dead)" if state == "dead" else (str(state) if state is not None else MISSING)
-        age = r.get("heartbeat_age_s")
-        restarts = r.get("restarts")
+        age = r.get(m.ROW_HEARTBEAT_AGE)
+        restarts = r.get(m.ROW_RESTARTS)
         table.add_row(
-            str(r.get("role", MISSING)), fmt_int(r.get("id")), str(r.get("host") or MISSING),
-            fmt_int(r.get("pid")).replace(",", ""), Text(label, style=STATE_STYLE.get(state, "")),
+            str(r.get(m.ROW_ROLE, MISSING)), fmt_int(r.get(m.ROW_ID)), str(r.get(m.ROW_HOST) or MISSING),
+            fmt_int(r.get(m.ROW_PID)).replace(",", ""), Text(label, style=STATE_STYLE.get(state, "")),
             f"{age:.1f} s" if _is_number(age) else MISSING, fmt_rate(r.get(m.FRAMES_PER_S)),
-            fmt_int(r.get("weights_lag")),
+            fmt_int(r.get(m.ROW_WEIGHTS_LAG)),
             Text(fmt_int(restarts), style="yellow" if _is_number(restarts) and restarts > 0 else ""),
-            fmt_int(r.get("rejected")),
+            fmt_int(r.get(m.ROW_REJECTED)),
             style="red" if state == "dead" else None,
         )
     if not roles:
         table.add_row(MISSING, *[""] * 9)
-    alive = sum(r.get("state") == "alive" for r in roles)
-    dead = sum(r.get("state") == "dead" for r in roles)
+    alive = sum(r.get(m.ROW_STATE) == "alive" for r in roles)
+    dead = sum(r.get(m.ROW_STATE) == "dead" for r in roles)
     title = f"Cluster  [green]{alive} alive[/]" + (f"  [bold red]{dead} dead[/]" if dead else "")
     subtitle = (f"rejected messages {fmt_int(record.get(m.REJECTED))}"
                 f"  ·  weights v{fmt_int(record.get(m.WEIGHTS_VERSION))}")
@@ -239,11 +239,11 @@ def frames_progress(record: dict[str, Any]) -> tuple[RenderableType, str]:
 def learning_panel(record: dict[str, Any]) -> Panel:
     t = _kv_table()
     bar, eta = frames_progress(record)
-    t.add_row("frames", f"{fmt_int(record.get('frames'))} / {fmt_int(record.get('frames_budget'))}")
+    t.add_row("frames", f"{fmt_int(record.get(m.FRAMES))} / {fmt_int(record.get(m.FRAMES_BUDGET))}")
     t.add_row("", bar)
     t.add_row("ETA", eta)
     t.add_row("frames/s", fmt_rate(record.get(m.FRAMES_PER_S)))
-    t.add_row("updates", f"{fmt_int(record.get('updates'))}  ({fmt_rate(record.get('updates_per_s'))})")
+    t.add_row("updates", f"{fmt_int(record.get(m.UPDATES))}  ({fmt_rate(record.get(m.UPDATES_PER_S))})")
     t.add_row("episodes", fmt_int(record.get(m.EPISODES)))
     t.add_row("replay ratio", fmt_float(record.get(m.REPLAY_RATIO), 2))
     t.add_row("loss", fmt_float(record.get(m.LOSS), 4))
@@ -261,7 +261,7 @@ def learning_panel(record: dict[str, Any]) -> Panel:
 
 def fmt_eval(record: dict[str, Any], key: str) -> str:
     """A greedy success rate with its standard error when the record has one: '47.3% ± 3.1'."""
-    rate, se = record.get(key), record.get(f"{key}_se")
+    rate, se = record.get(key), record.get(key + m.SE_SUFFIX)
     if not _is_number(se):
         return fmt_pct(rate)
     return f"{fmt_pct(rate)} ± {100 * se:.1f}"
@@ -316,8 +316,8 @@ def header(state: DashboardState, now: float | None = None) -> RenderableType:
     r = state.record
     line = Text()
     line.append("higher-dist", style="bold magenta")
-    line.append(f"  preset {r.get('preset') or MISSING}  world {r.get('world') or MISSING}"
-                f"  elapsed {fmt_duration(r.get('elapsed_s'))}")
+    line.append(f"  preset {r.get(m.PRESET) or MISSING}  world {r.get(m.WORLD) or MISSING}"
+                f"  elapsed {fmt_duration(r.get(m.ELAPSED_S))}")
     if state.garbage_frames:
         line.append(f"  garbage frames {state.garbage_frames}", style="yellow")
     if r.get(m.LAYOUT):

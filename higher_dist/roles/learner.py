@@ -147,9 +147,9 @@ class LearnerRole:
         self.evaluator.start(dqn.weights_numpy(), self.core.frames, dqn.average_weights_numpy())
 
     def _own_row(self) -> dict:
-        return {"role": "learner", "id": 0, "host": socket.gethostname(), "pid": os.getpid(), "state": "alive",
-                "heartbeat_age_s": 0.0, "frames_per_s": None, "weights_lag": 0,
-                "restarts": int(os.environ.get("HIGHER_RESTARTS", "0")), "rejected": self.rejects.total}
+        return {m.ROW_ROLE: "learner", m.ROW_ID: 0, m.ROW_HOST: socket.gethostname(), m.ROW_PID: os.getpid(),
+                m.ROW_STATE: "alive", m.ROW_HEARTBEAT_AGE: 0.0, m.FRAMES_PER_S: None, m.ROW_WEIGHTS_LAG: 0,
+                m.ROW_RESTARTS: int(os.environ.get("HIGHER_RESTARTS", "0")), m.ROW_REJECTED: self.rejects.total}
 
     def record(self) -> dict:
         r = self.core.metrics()

@@ -24,7 +24,7 @@ import numpy as np
 from higher_dist import metrics as m
 
 # A role's dropped messages travel in its stats as reject_<reason>: count; the learner sums them by reason.
-REJECT_STAT_PREFIX = "reject_"
+REJECT_STAT_PREFIX = m.REJECT_STAT_PREFIX
 
 
 @dataclass
@@ -105,13 +105,14 @@ class RoleRegistry:
             age = now - info.last_seen
             state = "stopped" if info.stopped else ("dead" if age > self.dead_after_s else "alive")
             info.state = state
-            version = info.stats.get("weights_version")
+            # A role's stats arrive from time to time: until its first, what it has not reported is None.
+            version = info.stats.get(m.WEIGHTS_VERSION)
             rows.append({
-                "role": role, "id": index, "host": info.host, "pid": info.pid, "state": state,
-                "heartbeat_age_s": round(age, 1), "frames_per_s": info.stats.get("frames_per_s"),
-                "weights_lag": None if version is None else max(learner_version - int(version), 0),
-                "restarts": int(info.stats.get("restarts", 0) or 0),
-                "rejected": int(info.stats.get("rejected_messages", 0) or 0),
+                m.ROW_ROLE: role, m.ROW_ID: index, m.ROW_HOST: info.host, m.ROW_PID: info.pid, m.ROW_STATE: state,
+                m.ROW_HEARTBEAT_AGE: round(age, 1), m.FRAMES_PER_S: info.stats.get(m.FRAMES_PER_S),
+                m.ROW_WEIGHTS_LAG: None if version is None else max(learner_version - int(version), 0),
+                m.ROW_RESTARTS: int(info.stats.get(m.ROW_RESTARTS, 0) or 0),
+                m.ROW_REJECTED: int(info.stats.get(m.REJECTED, 0) or 0),
             })
         return rows
 
@@ -122,10 +123,10 @@ class RoleRegistry:
         roles = [own_row] + self.table(learner_version)
         relabeler = next((i.stats for i in self.roles.values() if i.role == "relabeler"), {})
         actors = [i for i in self.roles.values() if i.role == "actor"]
-        actor_rows = [row for row in roles if row["role"] == "actor"]
-        actor_fps = [row["frames_per_s"] or 0.0 for row in actor_rows if row["state"] == "alive"]
-        lags = [row["weights_lag"] for row in actor_rows if row["weights_lag"] is not None]
-        eps = [i.stats["epsilon_mean"] for i in actors if i.stats.get("epsilon_mean") is not None]
+        actor_rows = [row for row in roles if row[m.ROW_ROLE] == "actor"]
+        actor_fps = [row[m.FRAMES_PER_S] or 0.0 for row in actor_rows if row[m.ROW_STATE] == "alive"]
+        lags = [row[m.ROW_WEIGHTS_LAG] for row in actor_rows if row[m.ROW_WEIGHTS_LAG] is not None]
+        eps = [i.stats[m.EPSILON_MEAN] for i in actors if i.stats.get(m.EPSILON_MEAN) is not None]
         by_reason = dict(own_rejects)
         for info in self.roles.values():
             for key, value in info.stats.items():
@@ -136,7 +137,7 @@ class RoleRegistry:
             m.FRAMES_PER_S: round(sum(actor_fps), 1),
             m.WEIGHTS_LAG_MEAN: round(float(np.mean(lags)), 1) if lags else None,
             m.REJECTED: sum(by_reason.values()), m.REJECTS_BY_REASON: by_reason,
-            **m.relabel_record(relabeler), m.RELABELS_PER_S: relabeler.get("relabels_per_s"),
+            **{key: relabeler.get(key) for key in m.RELABELER_KEYS},
             m.EPSILON_MEAN: round(float(np.mean(eps)), 4) if eps else None,
             m.ROLES: roles,
         }

@@ -18,11 +18,12 @@ from pathlib import Path
 
 import zmq
 
+from higher_dist import metrics as m
 from higher_dist.launch.channels import open_channel
 from higher_dist.learning.agent import AgentBuilder, train_generator
 from higher_dist.roles.client import start_role
 from higher_dist.roles.loop import Every, HandlerGuard
-from higher_dist.rundir import RunDir
+from higher_dist.rundir import RunDir, plain_record
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.episodes import pack_episodes, unpack_episodes
 from higher_dist.wire.security import Security
@@ -120,15 +121,15 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
                 client.rejects.add("unexpected_type")
             service.train_slice()
             now = time.time()
-            client.heartbeat({"episodes": service.received, "relabelled": service.relabelled})
+            client.heartbeat({m.EPISODES: service.received, m.RELABELS_MADE: service.relabelled})
             if stats(now):
                 t_w, n_w = relabels_window
                 relabels_per_s = (service.relabelled - n_w) / max(now - t_w, 1e-9)
                 relabels_window = (now, service.relabelled)
                 client.send("register", {"role": "relabeler", "endpoint": episodes_endpoint})
-                client.stats({"episodes": service.received, "relabelled": service.relabelled,
-                              "relabels_per_s": round(relabels_per_s, 2), "handler_errors": guard.errors,
-                              "generator_updates_owed": service.pace.owed, **_flat(service.strategy.metrics())})
+                client.stats(plain_record({**service.strategy.metrics(), m.EPISODES: service.received,
+                                           m.RELABELS_MADE: service.relabelled, m.RELABELS_PER_S: round(relabels_per_s, 2),
+                                           m.HANDLER_ERRORS: guard.errors, m.GENERATOR_UPDATES_OWED: service.pace.owed}))
             if checkpoints(now):
                 rd.save_checkpoint("relabeler", service.state_dict())
     finally:
@@ -139,10 +140,3 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
     log.info("relabeler stopped: %d episodes in, %d relabelled", service.received, service.relabelled)
     return 0
 
-
-def _flat(metrics: dict) -> dict:
-    out = {}
-    for k, v in metrics.items():
-        if isinstance(v, (int, float, str, bool)) or v is None:
-            out[k] = v
-    return out

@@ -48,8 +48,8 @@ def test_higher_relabels_with_its_learned_generator():
     cfg, runner, records = run("higher", 12_000, **{"generator.n_min": 60, "eval.every_frames": 10**9})
     final = records[-1]
     m = runner.relabeler.metrics()
-    assert m["strategy"] == "learned"
-    assert m["dataset_size"] >= 60 and m["gate_open"]
-    assert m["val_accuracy"] is not None and m["val_accuracy"] >= 0.5
+    assert m["relabel_strategy"] == "learned"
+    assert m["relabel_dataset_size"] >= 60 and m["relabel_gate_open"]
+    assert m["generator_val_accuracy"] is not None and m["generator_val_accuracy"] >= 0.5
     assert final["relabelled_episodes"] > 0
     assert m["relabel_accuracy"] is not None and m["relabel_accuracy"] >= 0.5

@@ -81,7 +81,7 @@ def test_none_relabels_nothing():
     strategy = RelabelStrategy(seed=0)
     strategy.observe(batch)
     assert strategy.relabel(batch) == [] and strategy.train(100) == {}
-    assert strategy.metrics()["considered"] == len(wrong) and strategy.metrics()["relabel_accuracy"] is None
+    assert strategy.metrics()["relabel_considered"] == len(wrong) and strategy.metrics()["relabel_accuracy"] is None
 
 
 def test_expert_relabels_every_wrong_pick_correctly_and_nothing_else():
@@ -95,7 +95,7 @@ def test_expert_relabels_every_wrong_pick_correctly_and_nothing_else():
         assert np.array_equal(c.frames, ep.frames)
     assert len({tuple(c.mission[:2]) for c in copies}) > 1  # random prefixes and orders
     m = strategy.metrics()
-    assert m["relabelled"] == len(wrong) and m["relabel_accuracy"] == 1.0
+    assert m["relabels_made"] == len(wrong) and m["relabel_accuracy"] == 1.0
 
 
 def test_noisy_expert_changes_each_attribute_at_rate_p():
@@ -124,7 +124,7 @@ def test_learned_relabels_nothing_while_the_gate_is_closed():
     assert len(strategy.trainer.dataset) == GEN.n_min - 1
     assert strategy.relabel(batch) == []
     m = strategy.metrics()
-    assert not m["gate_open"] and m["gated_off"] == len(wrong) and m["relabelled"] == 0
+    assert not m["relabel_gate_open"] and m["relabel_gated_off"] == len(wrong) and m["relabels_made"] == 0
     # Relabelled copies and failures never enter the generator's dataset.
     strategy.observe(batch)
     assert len(strategy.trainer.dataset) == GEN.n_min - 1 + 1  # the one success of the batch
@@ -135,7 +135,7 @@ def test_learned_with_gate_open_relabels_wrong_picks_only(trained):
     before = trained.metrics()
     copies = trained.relabel(batch)
     m = trained.metrics()
-    dropped = m["unparseable"] - before["unparseable"] + m["contradicting"] - before["contradicting"]
+    dropped = m["relabel_unparseable"] - before["relabel_unparseable"] + m["relabel_contradicting"] - before["relabel_contradicting"]
     assert len(copies) + dropped == len(wrong)
     assert len(copies) >= 0.9 * len(wrong)
     check_copies(copies, wrong)
@@ -143,9 +143,9 @@ def test_learned_with_gate_open_relabels_wrong_picks_only(trained):
     assert all(c.frames.tobytes() in frames_of for c in copies)
     assert all(parse(c.mission) is not None for c in copies)
     # Scored against the picked object for the dashboard: mostly right on training objects.
-    new = m["relabelled"] - before["relabelled"]
+    new = m["relabels_made"] - before["relabels_made"]
     assert new == len(copies)
-    assert m["relabel_accuracy"] >= 0.8 and m["dataset_size"] == 400 and m["val_accuracy"] >= 0.8
+    assert m["relabel_accuracy"] >= 0.8 and m["relabel_dataset_size"] == 400 and m["generator_val_accuracy"] >= 0.8
 
 
 def test_learned_drops_and_counts_relabels_that_name_the_failed_goal(trained):
@@ -155,10 +155,10 @@ def test_learned_drops_and_counts_relabels_that_name_the_failed_goal(trained):
     wrong = wrong_picks(30, "train", seed=9)
     rng = np.random.default_rng(9)
     told = [replace(ep, mission=expert_tokens(ep.picked[None], rng)[0]) for ep in wrong]
-    before = trained.metrics()["contradicting"]
+    before = trained.metrics()["relabel_contradicting"]
     copies = trained.relabel(told)
     m = trained.metrics()
-    assert m["contradicting"] - before >= 0.8 * len(told)
+    assert m["relabel_contradicting"] - before >= 0.8 * len(told)
     for c in copies:  # whatever got through names something other than the mission
         original = next(ep for ep in told if ep.frames.tobytes() == c.frames.tobytes())
         assert not np.array_equal(parse(c.mission), parse(original.mission))
@@ -214,7 +214,7 @@ def test_learned_checkpoint_round_trip(trained, tmp_path):
     clone.load_state_dict(run_dir.load_checkpoint("relabeler"))
     wrong = wrong_picks(8, "train", seed=9)
     assert [c.mission.tolist() for c in clone.relabel(wrong)] == [c.mission.tolist() for c in trained.relabel(wrong)]
-    for key in ("dataset_size", "val_accuracy", "train_steps", "gate_open"):
+    for key in ("relabel_dataset_size", "generator_val_accuracy", "generator_train_steps", "relabel_gate_open"):
         assert clone.metrics()[key] == trained.metrics()[key]
     with pytest.raises(ValueError):
         ExpertRelabel(seed=0).load_state_dict(trained.state_dict())
@@ -264,10 +264,10 @@ def test_generator_accuracy_is_unknown_before_its_first_evaluation_and_dated_aft
     rng = np.random.default_rng(4)
     views, missions, goals = make_pairs(FEW_OBJECTS, 200, "train", rng)
     strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
-    assert strategy.metrics()["val_accuracy"] is None
+    assert strategy.metrics()["generator_val_accuracy"] is None
     strategy.train(100)  # evaluated after 100 updates (eval_every_updates=100)
-    size_then = strategy.metrics()["dataset_size"]
+    size_then = strategy.metrics()["relabel_dataset_size"]
     views, missions, goals = make_pairs(FEW_OBJECTS, 100, "train", rng)
     strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
     m = strategy.metrics()
-    assert m["val_accuracy"] is not None and m["val_at_pairs"] == size_then < m["dataset_size"]
+    assert m["generator_val_accuracy"] is not None and m["generator_val_at_pairs"] == size_then < m["relabel_dataset_size"]

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from higher_dist import metrics as m
 from higher_dist.config import RELABEL_STRATEGIES, Config, GeneratorConfig
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.hindsight.generator import GeneratorTrainer
@@ -92,15 +93,17 @@ class RelabelStrategy:
         self.relabelled += len(originals)
 
     def metrics(self) -> dict[str, Any]:
+        """Every key of `metrics.RELABEL_KEYS`; None where this strategy has no such thing (no generator)."""
         return {
-            "strategy": self.name,
-            "considered": self.considered,
-            "relabelled": self.relabelled,
+            **dict.fromkeys(m.RELABEL_KEYS),
+            m.RELABEL_STRATEGY: self.name,
+            m.RELABEL_CONSIDERED: self.considered,
+            m.RELABELS_MADE: self.relabelled,
             # None until something was relabelled: "no data", not "always wrong".
-            "relabel_accuracy": (sum(self.recent_correct) / len(self.recent_correct)
+            m.RELABEL_ACCURACY: (sum(self.recent_correct) / len(self.recent_correct)
                                  if self.recent_correct else None),
-            "relabel_accuracy_total": self.correct / self.relabelled if self.relabelled else None,
-            "contradicting": self.contradicting,
+            m.RELABEL_ACCURACY_TOTAL: self.correct / self.relabelled if self.relabelled else None,
+            m.RELABEL_CONTRADICTING: self.contradicting,
         }
 
     def state_dict(self) -> dict[str, Any]:
@@ -220,13 +223,14 @@ class LearnedRelabel(RelabelStrategy):
         out = super().metrics()
         t = self.trainer
         out.update({
-            "unparseable": self.unparseable, "gated_off": self.gated_off,
-            "gate_open": t.gate_open,
-            "dataset_size": len(t.dataset),
+            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_GATED_OFF: self.gated_off,
+            m.RELABEL_GATE_OPEN: t.gate_open,
+            m.RELABEL_DATASET_SIZE: len(t.dataset),
             # As of the latest evaluation (None before the first), and the dataset size it was measured at.
-            "val_accuracy": t.val_accuracy if t.evaluations else None, "val_at_pairs": t.val_at_pairs,
-            "train_steps": t.steps,
-            "loss": None if np.isnan(t.last_loss) else t.last_loss, "evaluations": t.evaluations,
+            m.GENERATOR_VAL_ACCURACY: t.val_accuracy if t.evaluations else None,
+            m.GENERATOR_VAL_AT_PAIRS: t.val_at_pairs,
+            m.GENERATOR_TRAIN_STEPS: t.steps,
+            m.GENERATOR_LOSS: None if np.isnan(t.last_loss) else t.last_loss, m.GENERATOR_EVALUATIONS: t.evaluations,
         })
         return out
 
