@@ -2,7 +2,9 @@
 
 A role that dies is restarted with exponential backoff (the learner and the relabeler with --resume,
 so they continue from their checkpoints); after `max_restarts` crashes of one role the whole cluster is
-stopped with a message naming it. Ctrl-C or SIGTERM stops every role cleanly: each gets SIGTERM, writes
+stopped with a message naming it. A role that stopped on an internal error (exit status 70, see
+roles/loop.py) is one such crash: it wrote no checkpoint of the state that raised, so its restart goes on
+from its last good one, and the supervisor's line quotes the cause the role gave. Ctrl-C or SIGTERM stops every role cleanly: each gets SIGTERM, writes
 its final checkpoint and exits; whatever is still alive after a grace period is killed, so no process
 is left behind. The learner ends the run when the frame budget is reached (exit 0).
 """
@@ -10,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -21,7 +24,7 @@ from higher_dist.config import Config
 from higher_dist.launch.channels import check_binds
 from higher_dist.launch.layout import Layout, available_cores, plan_layout
 from higher_dist.launch.memory import role_env
-from higher_dist.launch.parent import LAUNCHER_PID_ENV
+from higher_dist.launch.parent import INTERNAL_ERROR_EXIT, LAUNCHER_PID_ENV
 from higher_dist.launch.topology import DEFAULT_BASE_PORT, Endpoints, check_free, claim_ports, parse_endpoint
 from higher_dist.rundir import RunDir, last_record
 from higher_dist.wire.security import Security
@@ -49,6 +52,20 @@ class RoleProcess:
         self.proc = subprocess.Popen(self.argv, stdout=out, stderr=subprocess.STDOUT if out else None, env=env)
         if out:
             out.close()  # the child holds its own descriptor
+
+
+def stated_cause(role: RoleProcess, code: int, tail_bytes: int = 65536) -> str:
+    """", CAUSE" with the one line a role that stopped on an internal error wrote last in its log, else ""."""
+    if code != INTERNAL_ERROR_EXIT:
+        return ""
+    try:
+        with open(role.log_path, "rb") as f:
+            f.seek(max(0, f.seek(0, os.SEEK_END) - tail_bytes))
+            lines = f.read().decode(errors="replace").splitlines()
+    except OSError:
+        return ""
+    said = [line.strip() for line in lines if re.match(r"[a-z]+( \d+)?: internal error in ", line)]
+    return f", {said[-1]}" if said else ""
 
 
 def cli_argv(command: str, *args: str) -> list[str]:
@@ -146,12 +163,12 @@ class Supervisor:
             role.crash_times.append(now)
             role.restarts += 1
             if role.restarts > self.max_restarts:
-                self.say(f"giving up: {role.name} crashed {role.restarts} times (last exit code {code}); "
-                         f"see {role.log_path}")
+                self.say(f"giving up: {role.name} crashed {role.restarts} times (last exit code {code}"
+                         f"{stated_cause(role, code)}); see {role.log_path}")
                 self.exit_code = 1
                 return False
             backoff = min(2.0 ** (role.restarts - 1), 30.0)
-            self.say(f"{role.name} exited with code {code}; restart in {backoff:.0f} s")
+            self.say(f"{role.name} exited with code {code}{stated_cause(role, code)}; restart in {backoff:.0f} s")
             role.next_start = now + backoff
         return True
 

@@ -1,5 +1,7 @@
-"""Roles end with the launcher that started them: a killed or crashed `higher-cluster` leaves no role
-behind holding its ports and cores. Kept free of heavy imports: every role calls it first thing."""
+"""What a role and whatever supervises it (higher-cluster, systemd, Slurm) agree on: roles end with the
+launcher that started them, so a killed or crashed `higher-cluster` leaves no role behind holding its ports
+and cores; and the exit status of a role that stopped on an internal error. Kept free of heavy imports:
+every role calls it first thing."""
 from __future__ import annotations
 
 import os
@@ -7,6 +9,9 @@ import signal
 import sys
 
 LAUNCHER_PID_ENV = "HIGHER_LAUNCHER_PID"  # set for the roles a launcher starts: they end with it
+# A role's own code raised (roles/loop.py): it kept its last good checkpoint and is to be restarted with
+# --resume. sysexits' EX_SOFTWARE; not 2, the status of bad flags and refusals, which systemd does not restart.
+INTERNAL_ERROR_EXIT = 70
 
 
 def follow_launcher() -> None:

@@ -3,7 +3,8 @@ policy copy and its own environments (Acme's evaluator node, in a thread).
 
 The learner hands it a snapshot of the weights when the evaluation cadence fires; the result lands in
 `latest` when done. If an evaluation is still running when the next one is due, the new one is skipped
-rather than queued: the curve gets a point less, the learner never waits.
+rather than queued: the curve gets a point less, the learner never waits. An evaluation that raises is the
+learner's internal error: `check` raises it again in the learner's thread, which stops the learner.
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ class BackgroundEvaluator:
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._latest: dict[str, float] = {}
+        self._failure: Exception | None = None
         self.evaluations = 0
         self.skipped = 0
 
@@ -49,12 +51,18 @@ class BackgroundEvaluator:
         try:
             with TRACING_GATE.using():  # not while the learner's loss compiles (compiled_loss.py)
                 result = self.agent.evaluate_weights(self.policy, weights, averaged, frames)
-        except Exception:  # an evaluation bug must not take the learner down with it
-            log.exception("evaluation at %d frames failed", frames)
+        except Exception as exc:  # noqa: BLE001 - handed to the learner's thread, which stops on it (check)
+            log.error("evaluation at %d frames failed", frames)
+            self._failure = exc
             return
         with self._lock:
             self._latest = {**result, m.EVAL_FRAMES: int(frames)}
             self.evaluations += 1
+
+    def check(self) -> None:
+        """Raises what made an evaluation fail, if one did."""
+        if self._failure is not None:
+            raise self._failure
 
     def latest(self) -> dict[str, float]:
         with self._lock:

@@ -8,10 +8,18 @@ SIGTERM/SIGINT.
 
 No input can end the loop: every incoming episode is checked against the run's `WorldSpec` where it is
 unpacked (wire/episodes.py) and dropped, counted by reason, when it fails; an unexpected exception while
-handling one message is logged with the message's type and sender, counted as `handler_error`, and the
+checking one message is logged with the message's type and sender, counted as `handler_error`, and the
 loop goes on (roles/loop.HandlerGuard). Relabelled episodes are accepted only in messages whose sender
 is the relabeler: an actor never relabels, so such a claim from anyone else is dropped as
 `relabel_origin`.
+
+An exception of the learner's own code once a message has passed its checks (the replay insert, a DQN
+update, weights publishing, the evaluation thread, metrics, a checkpoint write, handling a control
+message) is an internal error, not a bad message: the learner stops at once with one line on stderr
+naming the step and the error, exit status 70 (roles/loop.INTERNAL_ERROR_EXIT), and writes neither a
+metrics record nor a checkpoint from the state that raised: its last good checkpoint stays on disk as it
+was, for the launcher, systemd or a Slurm requeue to resume from. Like a killed learner, it tells no
+other role to stop: they reconnect to the restarted one.
 """
 from __future__ import annotations
 
@@ -34,7 +42,7 @@ from higher_dist.learning.agent import AgentBuilder
 from higher_dist.learning.devices import resolve_device
 from higher_dist.roles.control_server import ControlServer
 from higher_dist.roles.evaluator import BackgroundEvaluator
-from higher_dist.roles.loop import Every, HandlerGuard
+from higher_dist.roles.loop import Every, HandlerGuard, internal, stop_on_internal_error
 from higher_dist.roles.registry import RateMeter, RoleRegistry
 from higher_dist.rundir import RunDir, plain_record
 from higher_dist.wire import codec, sockets
@@ -66,7 +74,7 @@ class LearnerRole:
         self.evaluator = BackgroundEvaluator(self.agent)
         self.registry = RoleRegistry(dead_after_s=cfg.role_grace_s)
         self.rejects = sockets.RejectCounter()
-        self.guard = HandlerGuard(self.rejects, log)
+        self.guard = HandlerGuard(self.rejects, log, "experience")
         self.weights_version = 0
         self.stop_reason = ""
         self.started = time.time()
@@ -118,19 +126,18 @@ class LearnerRole:
             if msg.type != "episodes":
                 self.rejects.add("unexpected_type")
                 continue
-            self.guard(msg, self.take_episodes, msg)
+            episodes = self.guard(msg, self.check_episodes, msg)
+            if episodes:
+                with internal("replay insert"):
+                    self.core.add_episodes(episodes)
 
-    def take_episodes(self, msg) -> None:
-        try:
-            episodes = unpack_episodes(
-                msg, self.core.spec, reject=lambda reason: self.rejects.add(reason, where="experience"),
-                # No bound on the episodes' weights versions: after a learner restart without a
-                # checkpoint, honest actors still act with the previous instance's newer versions.
-                allow_relabelled=msg.sender == "relabeler", n_actors=self.cfg.actors)
-        except codec.WireError as e:
-            self.rejects.add(e.reason, e.detail, "experience")
-            return
-        self.core.add_episodes(episodes)
+    def check_episodes(self, msg) -> list:
+        """The message's episodes that pass the checks against the run's world; a WireError drops it all."""
+        return unpack_episodes(
+            msg, self.core.spec, reject=lambda reason: self.rejects.add(reason, where="experience"),
+            # No bound on the episodes' weights versions: after a learner restart without a
+            # checkpoint, honest actors still act with the previous instance's newer versions.
+            allow_relabelled=msg.sender == "relabeler", n_actors=self.cfg.actors)
 
     # -- outputs ------------------------------------------------------------------------------------
     def publish_weights(self) -> None:
@@ -176,61 +183,89 @@ class LearnerRole:
         stop = []
         for s in (signal.SIGINT, signal.SIGTERM):
             signal.signal(s, lambda *_: stop.append(1))
-        self.publish_weights()
+        try:
+            self.loop(stop)
+            self.stop_reason = "frame budget reached" if not stop else "stopped by signal"
+            self.shutdown()
+        except Exception as exc:  # noqa: BLE001 - the learner's own code raised: see the module's docstring
+            return self.stop_on_internal_error(exc)
+        return 0
+
+    def loop(self, stop: list) -> None:
+        """Until the frame budget is reached or `stop` fills; each step of the learner's own work is named,
+        so an exception in it stops the learner with that name (roles/loop.internal)."""
+        with internal("weights publishing"):
+            self.publish_weights()
         if self.resumed:
             # The curve's first point after a resume is the checkpoint itself, written before any new
             # experience is taken, so where the run went on from is on record rather than inferred.
-            self.rd.append_metrics(self.record())
+            with internal("metrics"):
+                self.rd.append_metrics(self.record())
         republish, telemetry = Every(WEIGHTS_REPUBLISH_S), Every(TELEMETRY_EVERY_S)
         metrics, checkpoints = Every(self.cfg.stats_every_s), Every(self.cfg.checkpoint_every_s)
         poller = zmq.Poller()
         poller.register(self.control.sock, zmq.POLLIN)
         poller.register(self.experience, zmq.POLLIN)
-        try:
-            while not stop and self.core.frames < self.cfg.frames:
-                can_update = self.core.can_update()
-                poller.poll(0 if can_update else 20)
-                self.control.poll(self.guard)
-                self.poll_experience()
-                before = self.core.updates
+        while not stop and self.core.frames < self.cfg.frames:
+            can_update = self.core.can_update()
+            poller.poll(0 if can_update else 20)
+            with internal("control message handling"):  # decoding is checked and counted inside, never raises
+                self.control.poll()
+            self.poll_experience()
+            before = self.core.updates
+            with internal("DQN update"):
                 self.core.train_available(max_updates=4)
-                now = time.time()
-                if self.agent.weights_due(before, self.core.updates) or republish.due(now):
+            now = time.time()
+            if self.agent.weights_due(before, self.core.updates) or republish.due(now):
+                with internal("weights publishing"):
                     self.publish_weights()
-                    republish.reset(now)
+                republish.reset(now)
+            with internal("evaluation"):
+                self.evaluator.check()
                 self.maybe_evaluate()
-                if telemetry(now):
+            if telemetry(now):
+                with internal("metrics"):
                     record = self.record()
                     self.telemetry.send(codec.encode("telemetry", {"record": record}, sender="learner")[0],
                                         flags=zmq.NOBLOCK)
                     if metrics(now):
                         self.rd.append_metrics(record)
-                if checkpoints(now):
+            if checkpoints(now):
+                with internal("checkpoint writing"):
                     self.checkpoint()
-            self.stop_reason = "frame budget reached" if not stop else "stopped by signal"
-        finally:
-            self.shutdown()
-        return 0
 
     def shutdown(self) -> None:
-        # A crash (no stop reason) tells nobody to stop: like a killed learner, the restarted one finds the
-        # actors and the relabeler still there, reconnecting. Told to stop, they would exit for good.
-        if self.stop_reason:
-            self.control.stop_all(self.stop_reason)
-            try:
-                self.telemetry.send(codec.encode("stop", {"reason": self.stop_reason}, sender="learner")[0],
-                                    flags=zmq.NOBLOCK)
-            except zmq.ZMQError:
-                pass
+        """A clean stop: the run's last point and its final checkpoint, then every role told why. Told only
+        after the writes, so that when one fails (an internal error) the others are still there for the
+        restarted learner, as after any crash."""
         self.evaluator.wait()
-        if self.core.frames >= self.cfg.frames:  # the run's last point: greedy success at its end
-            self.start_evaluation()
-            self.evaluator.wait()
-        record = self.record()
-        self.rd.append_metrics(record)
-        self.checkpoint()
+        with internal("evaluation"):
+            if self.core.frames >= self.cfg.frames:  # the run's last point: greedy success at its end
+                self.start_evaluation()
+                self.evaluator.wait()
+            self.evaluator.check()
+        with internal("metrics"):
+            self.rd.append_metrics(self.record())
+        with internal("checkpoint writing"):
+            self.checkpoint()
+        self.control.stop_all(self.stop_reason)
+        try:
+            self.telemetry.send(codec.encode("stop", {"reason": self.stop_reason}, sender="learner")[0],
+                                flags=zmq.NOBLOCK)
+        except zmq.ZMQError:
+            pass
         self._close()
-        log.info("learner stopped: %s", self.stop_reason or "crashed (the others keep running)")
+        log.info("learner stopped: %s", self.stop_reason)
+
+    def stop_on_internal_error(self, exc: Exception) -> int:
+        # Like a crash, it tells nobody to stop: the restarted learner finds the actors and the relabeler
+        # still there, reconnecting (told to stop, they would exit for good). Nothing of the state that
+        # raised is written, no metrics record and no checkpoint: the last good checkpoint is the restart's.
+        self.evaluator.wait()
+        self._close()
+        path = self.rd.checkpoint_path("learner")
+        kept = f"last good checkpoint kept: {path}" if path.exists() else "no checkpoint written yet"
+        return stop_on_internal_error("learner", exc, kept, log)
 
     def _close(self) -> None:
         self.control.close()

@@ -9,6 +9,10 @@ the pace the config sets per env frame (`generator.updates_per_kframe`, enforced
 falls behind by more than a few slices the relabeler stops reading until it has caught up, which pushes
 back on the actors instead of letting the pace depend on the machine. When the learner pushes back (its
 socket is full) the relabeler stops reading too. Its generator, dataset and pace are checkpointed.
+
+A message that fails its checks is dropped and counted. An exception of its own work on episodes that
+passed (relabelling, generator training, a checkpoint write) stops it with one line naming the step, exit
+status 70 and no checkpoint of the state that raised: its last good one stays for --resume (roles/loop.py).
 """
 from __future__ import annotations
 
@@ -22,7 +26,7 @@ from higher_dist import metrics as m
 from higher_dist.launch.channels import open_channel
 from higher_dist.learning.agent import AgentBuilder, train_generator
 from higher_dist.roles.client import start_role
-from higher_dist.roles.loop import Every, HandlerGuard
+from higher_dist.roles.loop import Every, HandlerGuard, internal, stop_on_internal_error
 from higher_dist.rundir import RunDir, plain_record
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.episodes import pack_episodes, unpack_episodes
@@ -36,8 +40,9 @@ WAIT_MS = 20  # longest wait on a socket before looking at control, training and
 
 
 class Relabeler:
-    """What the service does with one message, apart from the sockets (so a bad message's damage is
-    confined to `handle`, which the loop guards)."""
+    """What the service does with one message, apart from the sockets: `check` (what the loop guards: a
+    message that fails it is dropped and counted) and `relabel` (its own work: an exception there is an
+    internal error that stops the relabeler)."""
 
     def __init__(self, agent: AgentBuilder, rejects: sockets.RejectCounter):
         self.agent, self.rejects = agent, rejects
@@ -46,16 +51,13 @@ class Relabeler:
         self.trainable = self.strategy.name == "learned"  # only the generator has anything to train
         self.received = self.relabelled = 0
 
-    def handle(self, msg) -> list | None:
-        """Frames to forward to the learner for one `episodes` message, or None if nothing survives."""
-        try:
-            episodes = unpack_episodes(msg, self.agent.spec, reject=lambda r: self.rejects.add(r, where="episodes"),
-                                       allow_relabelled=False, n_actors=self.agent.cfg.actors)
-        except codec.WireError as e:
-            self.rejects.add(e.reason, e.detail, "episodes")
-            return None
-        if not episodes:
-            return None
+    def check(self, msg) -> list:
+        """The message's episodes that pass the checks against the run's world; a WireError drops it all."""
+        return unpack_episodes(msg, self.agent.spec, reject=lambda r: self.rejects.add(r, where="episodes"),
+                               allow_relabelled=False, n_actors=self.agent.cfg.actors)
+
+    def relabel(self, episodes: list) -> list:
+        """Frames to forward to the learner: checked episodes and their relabelled copies."""
         self.received += len(episodes)
         self.strategy.observe(episodes)
         copies = self.strategy.relabel(episodes)
@@ -101,12 +103,7 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
     client.send("register", {"role": "relabeler", "endpoint": episodes_endpoint})
     stats, checkpoints = Every(cfg.stats_every_s), Every(min(CHECKPOINT_EVERY_S, cfg.checkpoint_every_s))
     relabels_window = (time.time(), 0)
-    guard = HandlerGuard(client.rejects, log)
-
-    def forward(msg) -> None:
-        frames = service.handle(msg)
-        if frames is not None:
-            outbox.put(frames)
+    guard = HandlerGuard(client.rejects, log, "episodes")
 
     try:
         while not stop and not client.poll():
@@ -116,10 +113,14 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
             if not outbox.busy and not service.behind:
                 msg = sockets.recv_message(inbox, WAIT_MS, client.rejects, "episodes")
             if msg is not None and msg.type == "episodes":
-                guard(msg, forward, msg)
+                episodes = guard(msg, service.check, msg)
+                if episodes:
+                    with internal("relabelling"):
+                        outbox.put(service.relabel(episodes))
             elif msg is not None:
                 client.rejects.add("unexpected_type")
-            service.train_slice()
+            with internal("generator training"):
+                service.train_slice()
             now = time.time()
             client.heartbeat({m.EPISODES: service.received, m.RELABELS_MADE: service.relabelled})
             if stats(now):
@@ -131,9 +132,15 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
                                            m.RELABELS_MADE: service.relabelled, m.RELABELS_PER_S: round(relabels_per_s, 2),
                                            m.HANDLER_ERRORS: guard.errors, m.GENERATOR_UPDATES_OWED: service.pace.owed}))
             if checkpoints(now):
-                rd.save_checkpoint("relabeler", service.state_dict())
+                with internal("checkpoint writing"):
+                    rd.save_checkpoint("relabeler", service.state_dict())
+        with internal("checkpoint writing"):
+            rd.save_checkpoint("relabeler", service.state_dict())
+    except Exception as exc:  # noqa: BLE001 - its own code raised: no checkpoint of that state (roles/loop.py)
+        path = rd.checkpoint_path("relabeler")
+        kept = f"last good checkpoint kept: {path}" if path.exists() else "no checkpoint written yet"
+        return stop_on_internal_error("relabeler", exc, kept, log)
     finally:
-        rd.save_checkpoint("relabeler", service.state_dict())
         inbox.close(linger=0)
         outbox.socket.close(linger=500)
         client.close()

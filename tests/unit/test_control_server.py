@@ -1,5 +1,5 @@
 """The learner's control server over real sockets (loopback TCP), the shared loop helpers, and the
-registry's telemetry: hello -> welcome or refuse, the actors' wait for the relabeler, rejoin, guards."""
+registry's telemetry: hello -> welcome or refuse, the actors' wait for the relabeler, rejoin, the message guard."""
 from __future__ import annotations
 
 import logging
@@ -47,7 +47,6 @@ def cluster():
     endpoints = Endpoints.from_base("127.0.0.1", free_base_port())
     rejects = sockets.RejectCounter()
     server = ControlServer(ctx, cfg, endpoints, Security(), None, RoleRegistry(), rejects)
-    guard = HandlerGuard(rejects, logging.getLogger("test"))
     peers: list[Peer] = []
 
     def peer(role: str) -> Peer:
@@ -58,10 +57,10 @@ def cluster():
         """Let the server handle what has arrived (it never blocks)."""
         end = time.time() + seconds
         while time.time() < end:
-            server.poll(guard)
+            server.poll()
             time.sleep(0.01)
 
-    yield server, guard, peer, pump, endpoints
+    yield server, peer, pump, endpoints
     for p in peers:
         p.sock.close(linger=0)
     server.sock.close(linger=0)
@@ -69,7 +68,7 @@ def cluster():
 
 
 def test_an_actor_is_welcomed_once_the_relabeler_has_registered_its_address(cluster):
-    server, _, peer, pump, endpoints = cluster
+    server, peer, pump, endpoints = cluster
     actor, relabeler = peer("actor"), peer("relabeler")
     actor.hello()
     pump()
@@ -89,7 +88,7 @@ def test_an_actor_is_welcomed_once_the_relabeler_has_registered_its_address(clus
 
 
 def test_another_protocol_version_and_an_unknown_role_are_refused_with_the_reason(cluster):
-    _, _, peer, pump, _ = cluster
+    _, peer, pump, _ = cluster
     old, stranger = peer("actor"), peer("spy")
     old.hello(protocol=PROTOCOL_VERSION + 1)
     stranger.hello()
@@ -101,7 +100,7 @@ def test_another_protocol_version_and_an_unknown_role_are_refused_with_the_reaso
 
 
 def test_a_peer_that_never_said_hello_is_asked_to_say_it_and_an_actor_cannot_register(cluster):
-    server, guard, peer, pump, _ = cluster
+    server, peer, pump, _ = cluster
     late = peer("actor")
     late.send("heartbeat", {"role": "actor", "id": 0, "state": "running", "counters": {"frames": 1.0}})
     pump()
@@ -114,11 +113,10 @@ def test_a_peer_that_never_said_hello_is_asked_to_say_it_and_an_actor_cannot_reg
     assert server.relabeler_endpoint is None and server.rejects.counts()["role_not_allowed"] == 1
     refusal = late.reply()
     assert refusal.type == "refuse" and "may not register the relabeler's address" in refusal.fields["reason"]
-    assert guard.errors == 0
 
 
 def test_stats_and_heartbeats_land_in_the_registry_and_stop_reaches_every_role(cluster):
-    server, _, peer, pump, _ = cluster
+    server, peer, pump, _ = cluster
     relabeler = peer("relabeler")
     relabeler.hello(index=0)
     pump()
@@ -133,9 +131,9 @@ def test_stats_and_heartbeats_land_in_the_registry_and_stop_reaches_every_role(c
     assert stop.type == "stop" and stop.fields["reason"] == "done"
 
 
-def test_the_guard_counts_a_failing_handler_and_returns_what_a_good_one_returns():
+def test_the_guard_counts_a_failing_check_by_reason_and_returns_what_a_good_one_returns():
     rejects = sockets.RejectCounter()
-    guard = HandlerGuard(rejects, logging.getLogger("test"))
+    guard = HandlerGuard(rejects, logging.getLogger("test"), "control")
     msg = codec.decode(codec.encode("stop", {"reason": "x"}, sender="actor3"))
 
     def broken(_msg):
@@ -143,6 +141,12 @@ def test_the_guard_counts_a_failing_handler_and_returns_what_a_good_one_returns(
 
     assert guard(msg, broken, msg) is None and guard(msg, lambda x: x + 1, 1) == 2
     assert guard.errors == 1 and rejects.counts() == {"handler_error": 1}
+
+    def malformed(_msg):
+        raise codec.WireError("range", "action 9")
+
+    assert guard(msg, malformed, msg) is None  # a message the wire checks refuse: counted under its reason
+    assert guard.errors == 1 and rejects.counts() == {"handler_error": 1, "range": 1}
 
 
 def test_every_fires_once_a_period_and_due_leaves_it_alone():

@@ -4,7 +4,6 @@ it, a key reaches only its roles' channels, and a revoked key (its entry moved o
 gets nothing, without a restart of the learner."""
 from __future__ import annotations
 
-import logging
 import os
 import shutil
 import stat
@@ -18,7 +17,6 @@ from higher_dist.config_presets import make_config
 from higher_dist.launch.channels import open_channel
 from higher_dist.launch.topology import Endpoints, free_base_port
 from higher_dist.roles.control_server import ControlServer
-from higher_dist.roles.loop import HandlerGuard
 from higher_dist.roles.registry import RoleRegistry
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.allowlist import client_key_name, read_allow_list
@@ -58,7 +56,6 @@ def learner(keys):
     security = Security(str(keys))
     server = ControlServer(ctx, make_config("higher", "small", actors=2), endpoints, security, None,
                            RoleRegistry(), sockets.RejectCounter())
-    guard = HandlerGuard(server.rejects, logging.getLogger("test"))
     peers = []
 
     def peer(role: str, name: str) -> Peer:
@@ -68,7 +65,7 @@ def learner(keys):
     def pump(seconds: float = 0.4) -> None:
         end = time.time() + seconds
         while time.time() < end:
-            server.poll(guard)
+            server.poll()
             time.sleep(0.01)
 
     yield server, peer, pump, (ctx, security), endpoints
