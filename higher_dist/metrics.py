@@ -94,7 +94,7 @@ RELABELER_KEYS = RELABEL_KEYS + (RELABELS_PER_S, GENERATOR_UPDATES_OWED)
 REJECTED = "rejected_messages"  # every role's dropped messages, summed [count]
 LEARNER_REJECTED = "learner_rejected"  # messages the learner dropped [count]
 REJECTS_BY_REASON = "rejects_by_reason"  # dropped messages over all roles, by reason [{reason: count}]
-HANDLER_ERRORS = "handler_errors"  # messages whose handling raised unexpectedly (logged, loop went on) [count]
+HANDLER_ERRORS = "handler_errors"  # messages whose checking raised unexpectedly (logged, dropped, loop went on) [count]
 ROLES = "roles"  # one row per role, the learner's first, with the columns below [rows]
 
 # -- the roles table: the columns of each row of `roles` ---------------------------------------------
