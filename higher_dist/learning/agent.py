@@ -1,13 +1,12 @@
 """One builder of the agent, used by the single-process runner and by every role of the cluster.
 
 It makes the components (the learner core, the relabel strategy, the actors' collectors and policies),
-derives every seed from `cfg.seed`, and owns the cadences (greedy evaluation, generator training pace,
-the frame count that drives epsilon), so that the runner really is the cluster in one process: a
-difference between the two is a bug in one place, not two drifting copies.
+derives every seed from `cfg.seed` (through `Seeds`, learning/seeds.py), and owns the cadences (greedy
+evaluation, generator training pace, the frame count that drives epsilon), so that the runner really
+is the cluster in one process: a difference between the two is a bug in one place, not two drifting
+copies.
 """
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -17,34 +16,8 @@ from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evalua
 from higher_dist.learning.exploration import Explorer, actor_epsilons
 from higher_dist.learning.learner_core import LearnerCore
 from higher_dist.learning.hindsight.relabel import RelabelStrategy, make_relabeler
+from higher_dist.learning.seeds import Seeds
 from higher_dist.world.spec import WorldSpec
-
-
-@dataclass(frozen=True)
-class Seeds:
-    """Every seed of a run, from the one in the config. Streams are far apart so no two roles share one."""
-
-    base: int
-
-    @property
-    def learner(self) -> int:  # network initialisation, replay sampling
-        return self.base
-
-    @property
-    def relabeler(self) -> int:  # generator initialisation, dataset split, expert wording
-        return self.base + 1
-
-    def actor_envs(self, actor: int) -> int:  # actor i's environments
-        return self.base * 1000 + 17 * (actor + 1)
-
-    def actor_exploration(self, actor: int) -> int:  # actor i's epsilon-greedy draws
-        return self.base * 7919 + actor
-
-    def actor_torch(self, actor: int) -> int:
-        return self.base + actor
-
-    def evaluation(self, frames: int) -> int:  # fresh goals at every evaluation, reproducible per frame count
-        return self.base + 10_000 + int(frames)
 
 
 class Cadence:
@@ -121,8 +94,9 @@ class AgentBuilder:
         return GeneratorPace(self.cfg.generator.updates_per_kframe)
 
     def collector(self, actor: int) -> EpisodeCollector:
-        return EpisodeCollector(self.cfg.world, self.cfg.envs_per_actor, self.cfg.network.frame_stack,
-                                seed=self.seeds.actor_envs(actor), actor_id=actor)
+        n_envs = self.cfg.envs_per_actor
+        return EpisodeCollector(self.cfg.world, n_envs, self.cfg.network.frame_stack, actor_id=actor,
+                                env_seeds=self.seeds.actor_env_seeds(actor, n_envs))
 
     def policy(self, device: str = "cpu") -> TorchQFunction:
         return TorchQFunction(self.cfg.network, self.spec, device=device)
@@ -151,7 +125,8 @@ class AgentBuilder:
     def evaluate(self, q_fn, frames: int, suffix: str = "") -> dict[str, float]:
         """Greedy success on training and held-out goals at `frames` learner frames (the same goals for
         every policy scored at that count; `suffix` names the policy's metrics, see evaluate_goal_sets)."""
-        return evaluate_goal_sets(q_fn, self.cfg, seed=self.seeds.evaluation(frames), suffix=suffix)
+        env_seeds = self.seeds.evaluation_env_seeds(frames, self.cfg.eval.episodes)
+        return evaluate_goal_sets(q_fn, self.cfg, env_seeds, suffix=suffix)
 
     def evaluate_weights(self, q_fn, online: dict, averaged: dict | None, frames: int) -> dict[str, float]:
         """The periodic evaluation of a learner's weights, loaded into `q_fn` (an evaluation-only policy):
