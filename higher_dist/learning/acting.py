@@ -7,7 +7,7 @@ The same collector serves the cluster's actors, the single-process runner and ev
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -25,9 +25,10 @@ QFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 class EpisodeCollector:
-    def __init__(self, world_cfg: WorldConfig, n_envs: int, frame_stack: int, seed: int,
-                 actor_id: int = 0, goal_set: str = "train"):
-        self.world = batched_world(world_cfg, n_envs, seed, goal_set=goal_set)
+    def __init__(self, world_cfg: WorldConfig, n_envs: int, frame_stack: int, seed: int = 0,
+                 actor_id: int = 0, goal_set: str = "train", env_seeds=None):
+        """Env i is seeded from [seed, i], or from `env_seeds[i]` when given (see world/batched.py)."""
+        self.world = batched_world(world_cfg, n_envs, seed, goal_set=goal_set, env_seeds=env_seeds)
         self.n_envs, self.frame_stack, self.actor_id = n_envs, frame_stack, actor_id
         v = self.world.view_size
         t_max = self.world.max_steps
@@ -108,51 +109,52 @@ def act(collector: EpisodeCollector, q_fn: QFunction, eps: np.ndarray, rng: np.r
     return episodes
 
 
-def evaluate(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, episodes: int, goal_set: str,
-             seed: int, n_envs: int = 256) -> tuple[float, float]:
-    """Greedy success rate over `episodes` episodes whose goals come from `goal_set` (train|heldout),
-    and its standard error.
+def evaluate(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, goal_set: str, env_seeds: Sequence[int],
+             n_envs: int = 256) -> tuple[float, float]:
+    """Greedy success rate over one episode per seed of `env_seeds` (Seeds.evaluation_env_seeds), whose
+    goals come from `goal_set` (train|heldout), and its standard error.
 
-    Exactly one episode per environment: `episodes` environments (in batches of at most `n_envs`) each
-    run their first episode to its end, and only that episode counts. Keeping the first `episodes`
-    episodes to finish instead would over-count short ones (successes end early, time-outs last the
-    whole step limit), biasing the rate upwards.
+    Exactly one episode per environment: the environments (in batches of at most `n_envs`) each run
+    their first episode to its end, and only that episode counts. Keeping the first episodes to finish
+    instead would over-count short ones (successes end early, time-outs last the whole step limit),
+    biasing the rate upwards.
     """
+    episodes = len(env_seeds)
     if episodes < 1:
-        raise ValueError(f"episodes: must be >= 1, got {episodes}")
+        raise ValueError(f"env_seeds: needs at least one seed (one per episode), got {episodes}")
     successes = 0
     for start in range(0, episodes, n_envs):
-        size = min(n_envs, episodes - start)
-        # Env i of this batch draws from [seed + start, i]: batches never repeat an episode.
-        collector = EpisodeCollector(world_cfg, size, frame_stack, seed + start, goal_set=goal_set)
-        successes += _first_episode_successes(collector, q_fn, np.random.default_rng(seed))
+        batch_seeds = list(env_seeds[start:start + n_envs])
+        collector = EpisodeCollector(world_cfg, len(batch_seeds), frame_stack, goal_set=goal_set,
+                                     env_seeds=batch_seeds)
+        successes += _first_episode_successes(collector, q_fn)
     rate = successes / episodes
     return rate, math.sqrt(rate * (1.0 - rate) / episodes)
 
 
-def _first_episode_successes(collector: EpisodeCollector, q_fn: QFunction, rng: np.random.Generator) -> int:
+def _first_episode_successes(collector: EpisodeCollector, q_fn: QFunction) -> int:
     """Step every env greedily until each has ended its first episode; count the successes among those."""
-    zero = np.zeros(collector.n_envs)
     first_outcome = np.full(collector.n_envs, RUNNING)
     while (first_outcome == RUNNING).any():
         obs, mission = collector.observation()
-        collector.step(epsilon_greedy(q_fn(obs, mission), zero, rng))
+        collector.step(q_fn(obs, mission).argmax(axis=1))  # greedy, first on ties (as epsilon_greedy)
         outcome = collector.last_outcome  # RUNNING where the episode goes on
         first_outcome = np.where((first_outcome == RUNNING) & (outcome != RUNNING), outcome, first_outcome)
     return int((first_outcome == SUCCESS).sum())
 
 
-def evaluate_goal_sets(q_fn: QFunction, cfg, seed: int, suffix: str = "") -> dict[str, float]:
+def evaluate_goal_sets(q_fn: QFunction, cfg, env_seeds: Sequence[int], suffix: str = "") -> dict[str, float]:
     """The periodic evaluation of a run (`cfg`: Config): greedy success on training and held-out goals,
-    each with its standard error (`_se`). `suffix` names another policy scored on the same goals
-    (metrics.AVERAGED_SUFFIX for the averaged weights)."""
-    k, n = cfg.network.frame_stack, cfg.eval.episodes
+    each with its standard error (`_se`), one episode per seed of `env_seeds` in each goal set.
+    `suffix` names another policy scored on the same goals (metrics.AVERAGED_SUFFIX for the averaged
+    weights)."""
+    k = cfg.network.frame_stack
     out: dict[str, float] = {}
     goal_sets = [("train", m.SUCCESS_EVAL_TRAIN)]
     if WorldSpec.of(cfg.world).has_heldout:  # a BabyAI level is scored on its own missions only
         goal_sets.append(("heldout", m.SUCCESS_EVAL_HELDOUT))
     for goal_set, key in goal_sets:
-        rate, se = evaluate(q_fn, cfg.world, k, n, goal_set, seed)
+        rate, se = evaluate(q_fn, cfg.world, k, goal_set, env_seeds)
         out[key + suffix] = round(rate, 4)
         out[key + suffix + m.SE_SUFFIX] = round(se, 4)
     return out

@@ -15,6 +15,7 @@ from higher_dist.learning.dqn import DQNLearner, learning_rate_at
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.rate_limiter import SamplesPerInsertLimiter
 from higher_dist.learning.replay import PrioritizedReplay
+from higher_dist.learning.seeds import Seeds
 from higher_dist.world.spec import WorldSpec
 
 
@@ -22,9 +23,11 @@ class LearnerCore:
     def __init__(self, cfg: Config, device: str | None = None):
         self.cfg = cfg
         self.spec = WorldSpec.of(cfg.world)
-        self.replay = PrioritizedReplay(cfg.replay, frame_stack=cfg.network.frame_stack,
-                                        n_step=cfg.dqn.n_step, gamma=cfg.dqn.gamma, spec=self.spec, seed=cfg.seed)
-        self.dqn = DQNLearner(cfg.network, cfg.dqn, device=device or cfg.device, spec=self.spec, seed=cfg.seed)
+        seeds = Seeds(cfg.seed)
+        self.replay = PrioritizedReplay(cfg.replay, frame_stack=cfg.network.frame_stack, n_step=cfg.dqn.n_step,
+                                        gamma=cfg.dqn.gamma, spec=self.spec, seed=seeds.learner_replay)
+        self.dqn = DQNLearner(cfg.network, cfg.dqn, device=device or cfg.device, spec=self.spec,
+                              seed=seeds.learner_init)
         self.limiter = SamplesPerInsertLimiter(cfg.replay.samples_per_insert, cfg.replay.min_size)
         self.frames = 0  # env frames the actors reported (original episodes only)
         self.episodes = 0

@@ -22,9 +22,9 @@ from higher_dist.learning.compiled_loss import TRACING_GATE
 
 class SingleProcessRunner:
     def __init__(self, cfg: Config, log: Callable[[dict], None] | None = None):
-        torch.manual_seed(cfg.seed)
         self.cfg = cfg
         self.agent = AgentBuilder(cfg)
+        torch.manual_seed(self.agent.seeds.learner_torch)  # the learner's process RNG: this is its process
         self.log = log or (lambda record: None)
         self.core = self.agent.learner_core()
         self.relabeler = self.agent.relabeler()

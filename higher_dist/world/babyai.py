@@ -16,9 +16,10 @@ outcome SUCCESS, reward 1 - 0.9 * steps / max_steps) or at the level's step limi
 outcome TIMEOUT). A step that does both counts as a success only. `picked` / `pick_step` report the
 first pickup of the episode (the one hindsight describes).
 
-Seeds. Env i is reset the first time with the seed `default_rng([seed, i]).integers(2**31 - 1)`
-(or `default_rng(env_seeds[i])`) and afterwards without one, continuing its own generator: env i of
-a batch replays a single `gym.make(level_id)` env reset once with that seed.
+Seeds. Env i is reset the first time with the seed `default_rng([seed, i]).integers(2**63 - 1)`
+(or `default_rng(env_seeds[i])...`) and afterwards without one, continuing its own generator: env i
+of a batch replays a single `gym.make(level_id)` env reset once with that seed. 63 bits, not 31: the
+many evaluation episodes of many runs must not meet on one reset seed by a birthday collision.
 """
 from __future__ import annotations
 
@@ -80,7 +81,7 @@ class BatchedBabyAI:
         elif len(env_seeds) != self.batch_size:
             raise ValueError(f"env_seeds: needs one seed per env ({self.batch_size}), got {len(env_seeds)}")
         # The seed of each env's first reset; None once used, so later resets continue its generator.
-        self._first_seeds = [int(np.random.default_rng(s).integers(2**31 - 1)) for s in env_seeds]
+        self._first_seeds = [int(np.random.default_rng(s).integers(2**63 - 1)) for s in env_seeds]
 
     # ------------------------------------------------------------------------------ observations
 

@@ -7,6 +7,7 @@ from higher_dist.config_presets import make_config, small_world
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate
 from higher_dist.learning.dqn import DQNLearner
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK
+from higher_dist.learning.seeds import Seeds
 from higher_dist.world.grid import ACTION_FORWARD, ACTION_LEFT, ACTION_PICK, KIND_EMPTY, KIND_KEY, BatchedFetchAttr
 from higher_dist.world.language import VOCAB, parse
 from higher_dist.world.objects import ObjectSpace
@@ -76,9 +77,10 @@ def test_greedy_evaluation_returns_a_rate_over_the_requested_episodes():
     cfg = make_config("her", "small")
     q = TorchQFunction(cfg.network)
     q.load(DQNLearner(cfg.network, cfg.dqn).weights_numpy())
-    rate, se = evaluate(q, cfg.world, cfg.network.frame_stack, 20, "heldout", seed=0, n_envs=8)
+    env_seeds = Seeds(0).evaluation_env_seeds(0, 20)
+    rate, se = evaluate(q, cfg.world, cfg.network.frame_stack, "heldout", env_seeds, n_envs=8)
     assert 0.0 <= rate <= 1.0 and se == pytest.approx((rate * (1 - rate) / 20) ** 0.5)
-    assert (rate, se) == evaluate(q, cfg.world, cfg.network.frame_stack, 20, "heldout", seed=0, n_envs=8)
+    assert (rate, se) == evaluate(q, cfg.world, cfg.network.frame_stack, "heldout", env_seeds, n_envs=8)
 
 
 def seek_goal_policy(obs, mission):
@@ -116,8 +118,9 @@ def test_evaluation_is_unbiased_when_successes_end_sooner_than_failures():
     assert 0.1 < p < 0.9
     # Many short evaluations (the periodic evaluation's shape: 64 episodes, fewer envs than episodes)
     # and one long one over the default batch of environments.
-    short = [evaluate(seek_goal_policy, cfg, 1, 64, "train", seed=s, n_envs=32) for s in range(16)]
-    long = evaluate(seek_goal_policy, cfg, 1, 512, "train", seed=100)
+    short = [evaluate(seek_goal_policy, cfg, 1, "train", Seeds(s).evaluation_env_seeds(0, 64), n_envs=32)
+             for s in range(16)]
+    long = evaluate(seek_goal_policy, cfg, 1, "train", Seeds(100).evaluation_env_seeds(0, 512))
     for rates, n in (([r for r, _ in short], 64 * 16), ([long[0]], 512)):
         # Within 3.5 standard errors of the truth (the truth's own error is several times smaller).
         assert abs(np.mean(rates) - p) < 3.5 * (p * (1 - p) / n) ** 0.5, (np.mean(rates), p, n)

@@ -67,9 +67,10 @@ def test_networks_replay_and_generator_read_the_spec():
 
 def test_seeds_are_derived_once_and_distinct():
     s = Seeds(3)
-    streams = [s.learner, s.relabeler, *(s.actor_envs(i) for i in range(8))]
+    streams = [s.learner_torch, s.learner_init, s.learner_replay, *vars(s.relabeler).values(),
+               *(s.actor_env_seeds(i, 1)[0] for i in range(8))]
     assert len(set(streams)) == len(streams)
-    assert s.evaluation(100) != s.evaluation(200)
+    assert s.evaluation_env_seeds(100, 4) != s.evaluation_env_seeds(200, 4)
     a, b = AgentBuilder(make_config("her", "small", seed=3)), AgentBuilder(make_config("her", "small", seed=3))
     ca, cb = a.collector(1), b.collector(1)
     assert np.array_equal(ca.observation()[0], cb.observation()[0])

@@ -68,7 +68,7 @@ def test_batched_steps_equal_minigrid_stepped_one_by_one(level):
     world = BatchedBabyAI(level, batch, seed=seed)
     refs = [gym.make(level) for _ in range(batch)]
     with quiet():
-        ref_obs = [ref.reset(seed=int(np.random.default_rng([seed, i]).integers(2**31 - 1)))[0]
+        ref_obs = [ref.reset(seed=int(np.random.default_rng([seed, i]).integers(2**63 - 1)))[0]
                    for i, ref in enumerate(refs)]
     view, mission = world.reset()
     assert view.shape == (batch, 7, 7, 4) and view.dtype == np.uint8 and mission.dtype == np.int64

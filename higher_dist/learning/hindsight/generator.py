@@ -24,6 +24,7 @@ from higher_dist.learning.episode import Episode
 from higher_dist.learning.devices import resolve_device
 from higher_dist.learning.hindsight.generator_data import GeneratorDataset, semantic_accuracy
 from higher_dist.learning.networks import ViewEncoder
+from higher_dist.learning.seeds import RelabelerSeeds
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 from higher_dist.world.language import BEG, END, PAD
 
@@ -156,16 +157,19 @@ def inference_batch(n: int) -> int:
 class GeneratorTrainer:
     """Model + Adam + dataset, with the gate that says when the generator may relabel."""
 
-    def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int = 0, device: str = "cpu"):
+    def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int | RelabelerSeeds = 0,
+                 device: str = "cpu"):
+        """`seed`: the relabeler's streams (Seeds.relabeler), or a run seed standing for its streams."""
         self.cfg, self.device, self.spec, self.language = cfg, resolve_device(device), spec, spec.language
+        seeds = RelabelerSeeds.of(seed)
         # A private RNG stream for the initial weights: building a trainer leaves the global torch
         # RNG untouched, and two trainers with one seed start identical.
         with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
+            torch.manual_seed(seeds.generator_init)
             self.model = InstructionGenerator(cfg, spec).to(self.device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
-        self.dataset = GeneratorDataset(cfg.capacity, cfg.val_fraction, seed, spec)
-        self.rng = np.random.default_rng(seed)
+        self.dataset = GeneratorDataset(cfg.capacity, cfg.val_fraction, seeds.dataset_split, spec)
+        self.rng = np.random.default_rng(seeds.generator_batches)
         self.steps = 0  # gradient steps taken
         self.evaluations = 0
         self.val_accuracy = 0.0  # exact match at the last evaluate(); 0 until the first one

@@ -28,6 +28,7 @@ from higher_dist import metrics as m
 from higher_dist.config import RELABEL_STRATEGIES, Config, GeneratorConfig
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.hindsight.generator import GeneratorTrainer
+from higher_dist.learning.seeds import RelabelerSeeds
 from higher_dist.world.language import noisy_attrs
 from higher_dist.world.objects import ObjectSpace
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
@@ -45,8 +46,9 @@ class RelabelStrategy:
 
     name = "none"
 
-    def __init__(self, seed: int = 0, spec: WorldSpec = DEFAULT_SPEC):
-        self.rng = np.random.default_rng(seed)
+    def __init__(self, seed: int | RelabelerSeeds = 0, spec: WorldSpec = DEFAULT_SPEC):
+        """`seed`: the relabeler's streams (Seeds.relabeler), or a run seed standing for its streams."""
+        self.rng = np.random.default_rng(RelabelerSeeds.of(seed).draws)
         self.spec, self.language = spec, spec.language
         self.considered = 0  # wrong-pick episodes offered for relabelling
         self.relabelled = 0  # copies returned
@@ -153,7 +155,7 @@ class NoisyExpertRelabel(ExpertRelabel):
 
     name = "noisy"
 
-    def __init__(self, space: ObjectSpace, p: float, seed: int = 0, spec: WorldSpec = DEFAULT_SPEC):
+    def __init__(self, space: ObjectSpace, p: float, seed: int | RelabelerSeeds = 0, spec: WorldSpec = DEFAULT_SPEC):
         super().__init__(seed, spec)
         self.space, self.p = space, float(p)
 
@@ -172,7 +174,8 @@ class LearnedRelabel(RelabelStrategy):
 
     name = "learned"
 
-    def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int = 0, device: str = "cpu"):
+    def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int | RelabelerSeeds = 0,
+                 device: str = "cpu"):
         super().__init__(seed, spec)
         self.cfg = cfg
         self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
@@ -247,8 +250,9 @@ class LearnedRelabel(RelabelStrategy):
         self._steps_since_eval = int(state["steps_since_eval"])
 
 
-def make_relabeler(cfg: Config, seed: int, space: ObjectSpace | None = None) -> RelabelStrategy:
-    """The relabel strategy of a run config (cfg.relabel, cfg.generator, cfg.world)."""
+def make_relabeler(cfg: Config, seed: int | RelabelerSeeds, space: ObjectSpace | None = None) -> RelabelStrategy:
+    """The relabel strategy of a run config (cfg.relabel, cfg.generator, cfg.world), drawing from the
+    relabeler's streams `seed` (Seeds.relabeler; an int stands for the streams of that run seed)."""
     kind = cfg.relabel.strategy
     spec = WorldSpec.of(cfg.world)
     if kind == "none":
