@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import signal
 import sys
@@ -22,6 +23,8 @@ from higher_dist import metrics as m
 from higher_dist.launch.local_cluster import RoleProcess, Supervisor
 from higher_dist.launch.parent import INTERNAL_ERROR_EXIT
 from higher_dist.launch.topology import free_base_port
+from higher_dist.roles.evaluator import BackgroundEvaluator
+from higher_dist.roles.loop import InternalError, internal, stop_on_internal_error
 from higher_dist.rundir import RunDir
 
 pytestmark = pytest.mark.slow
@@ -137,3 +140,30 @@ def test_the_supervisor_restarts_a_role_that_stopped_on_an_internal_error_with_r
     assert "restarting learner (restart 1)" in said and role.argv == [*stops, "--resume"]
     assert f"giving up: learner crashed 2 times (last exit code 70, {line})" in said, said
     assert sup.exit_code == 1
+
+
+def test_an_evaluation_that_raises_stops_the_learner_with_a_named_one_line_cause(capsys):
+    """The evaluation runs on a thread of the learner: its exception is raised again in the learner's loop,
+    named as the evaluation's, and said in one line (a fake agent: no environments needed)."""
+
+    class BrokenAgent:
+        def policy(self):
+            return None
+
+        def evaluate_weights(self, policy, weights, averaged, frames):
+            raise ValueError(f"non-finite Q-values at {frames} frames")
+
+    evaluator = BackgroundEvaluator(BrokenAgent())
+    evaluator.check()  # nothing has failed yet
+    assert evaluator.start({}, 1200)
+    evaluator.wait()
+    with pytest.raises(InternalError) as caught:
+        with internal("evaluation"):
+            evaluator.check()
+    assert str(caught.value) == "internal error in evaluation: ValueError: non-finite Q-values at 1200 frames"
+    code = stop_on_internal_error("learner", caught.value, "last good checkpoint kept: run/learner.ckpt",
+                                  logging.getLogger("test"))
+    assert code == INTERNAL_ERROR_EXIT == 70
+    assert capsys.readouterr().err.splitlines() == [
+        "learner: internal error in evaluation: ValueError: non-finite Q-values at 1200 frames "
+        "(last good checkpoint kept: run/learner.ckpt)"]
