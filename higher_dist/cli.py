@@ -27,7 +27,7 @@ def _die(prog: str, message: str) -> int:
 def _network_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address the learner advertises (loopback by default)")
     p.add_argument("--bind-host", default=None, help="interface to bind, e.g. 0.0.0.0 across hosts")
-    p.add_argument("--port-base", type=int, default=None, help="first of the five ports (default 5555)")
+    p.add_argument("--port-base", type=int, default=None, help="first of the five ports (default: 5555)")
     _security_flags(p, binds=True)
 
 
@@ -37,7 +37,7 @@ def _security_flags(p: argparse.ArgumentParser, binds: bool, connects: bool = Fa
     if connects:
         p.add_argument("--key", default=None, metavar="NAME",
                        help="the client pair NAME.key_secret in --keys to connect with (default: the pair named "
-                            "after the role, else the folder's only pair, else 'client')")
+                            "after the role, else 'client', else the folder's only pair; a dashboard: any pair)")
     if binds:
         p.add_argument("--insecure", action="store_true",
                        help="allow binding beyond loopback without --keys (anyone reaching the ports joins the run)")
@@ -79,9 +79,9 @@ def _world_checked(cfg):
 def cluster_main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-cluster", description="Run learner, relabeler, actors and dashboard here.",
                                 formatter_class=DefaultsHelp)
-    add_config_flags(p)
+    add_config_flags(p, layout_actors=True)
     _network_flags(p)
-    p.add_argument("--run-dir", default=None, help="where config, metrics and checkpoints go (default runs/PRESET-WORLD-sSEED-TIME)")
+    p.add_argument("--run-dir", default=None, help="where config, metrics and checkpoints go (default: runs/PRESET-WORLD-sSEED-TIME)")
     p.add_argument("--resume", action="store_true", help="continue from the run directory's checkpoints")
     p.add_argument("--no-dashboard", action="store_true", help="no live dashboard (prints a line per interval)")
     p.add_argument("--max-restarts", type=non_negative_int, default=5,
@@ -153,7 +153,8 @@ def learner_main(argv: list[str] | None = None) -> int:
 def _role_flags(p: argparse.ArgumentParser, binds: bool = False) -> None:
     p.add_argument("--learner", required=True, help="the learner's control endpoint, tcp://HOST:PORT")
     _security_flags(p, binds=binds, connects=True)
-    p.add_argument("--threads", type=positive_int, default=None, help="torch threads (default: the run's)")
+    p.add_argument("--threads", type=positive_int, default=1,
+                   help="torch threads (the run's torch_threads is the learner's share)")
 
 
 def relabeler_main(argv: list[str] | None = None) -> int:
@@ -163,7 +164,7 @@ def relabeler_main(argv: list[str] | None = None) -> int:
     p.add_argument("--bind-host", default=None, help="interface to bind its episodes socket")
     p.add_argument("--advertise", default=None, metavar="tcp://HOST:PORT",
                    help="its episodes endpoint as actors should reach it (default: the learner's host, base+4)")
-    p.add_argument("--state-dir", default=None, help="where its checkpoint goes (default: the run dir)")
+    p.add_argument("--state-dir", default=None, help="where its checkpoint goes (default: runs/relabeler)")
     p.add_argument("--resume", action="store_true")
     args = p.parse_args(argv)
 

@@ -64,7 +64,9 @@ def world_name(text: str) -> str:
                                      f"or a BabyAI pickup level id such as BabyAI-PickupDist-v0")
 
 
-def add_config_flags(p: argparse.ArgumentParser) -> None:
+def add_config_flags(p: argparse.ArgumentParser, layout_actors: bool = False) -> None:
+    """`layout_actors`: the command picks the actor count for its host when --actors is not given
+    (higher-cluster); elsewhere the config's own count stands."""
     # Defaults are None here and filled in by config_from_args, so that `explicit_overrides` can tell a
     # flag the user gave from a default (a resumed run compares only what was given with its config).
     p.add_argument("--preset", choices=PRESETS, default=None, help="the paper's method to run (default: higher)")
@@ -74,7 +76,8 @@ def add_config_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--profile", choices=PROFILES, default=None,
                    help="default: our tuned settings; paper: the paper's (docs/paper_settings.md) (default: default)")
     p.add_argument("--actors", type=positive_int, default=None,
-                   help="actor processes (default: higher-cluster's layout for this host, launch/layout.py)")
+                   help="actor processes (default: " + ("the layout for this host, launch/layout.py)" if layout_actors
+                                                         else f"{Config.actors})"))
     p.add_argument("--envs-per-actor", type=positive_int, default=None,
                    help="environments per actor (default: the preset's, 32 on the paper world)")
     p.add_argument("--frames", type=positive_int, default=None,

@@ -168,7 +168,7 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser("higher-plot", description="Plot the curves of one or more runs.",
                                      formatter_class=DefaultsHelp)
     parser.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories (or a folder of runs)")
-    parser.add_argument("--out", default="plots", help="where the PNG files go (default: ./plots)")
+    parser.add_argument("--out", default="plots", help="where the PNG files go")
     parser.add_argument("--table", action="store_true",
                         help="also write each run's curve at its evaluations as OUT/NAME.csv and print it")
     args = parser.parse_args(argv)

@@ -28,9 +28,9 @@ def format_table(result: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="higher-bench generator", description=__doc__.split("\n")[0])
-    parser.add_argument("--pairs", type=int, default=5000, help="expert training pairs (default 5000)")
+    parser.add_argument("--pairs", type=int, default=5000, help="expert training pairs (default: 5000)")
     parser.add_argument("--steps", type=int, default=1500,
-                        help="Adam steps of batch 64 (default 1500: about a minute on one CPU thread)")
+                        help="Adam steps of batch 64 (default: 1500; about a minute on one CPU thread)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--eval-pairs", type=int, default=2000, help="fresh pairs per evaluation set")
     parser.add_argument("--world", default="paper", help="paper | small")

@@ -19,6 +19,7 @@ import torch
 
 from higher_dist.bench.cluster_bench import measure_cluster
 from higher_dist.bench.learner_bench import Lever, make_core, time_updates
+from higher_dist.config_flags import DefaultsHelp
 from higher_dist.config_presets import make_config
 from higher_dist.launch.layout import available_cores, plan_layout
 from higher_dist.learning.devices import resolve_device
@@ -46,7 +47,7 @@ def learner_rows(device: str, sizes: list[int], seconds: float, compiled: bool, 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-bench gpu", description=__doc__.splitlines()[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                formatter_class=DefaultsHelp)
     p.add_argument("--batch-sizes", default="256,1024", help="eager learner rows, comma-separated")
     p.add_argument("--seconds", type=float, default=5.0, help="timed seconds per learner row")
     p.add_argument("--no-compile", action="store_true", help="skip the compiled learner row")

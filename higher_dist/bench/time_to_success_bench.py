@@ -24,6 +24,7 @@ from higher_dist import metrics as names
 from higher_dist.analysis.runs import Run
 from higher_dist.rundir import read_metrics
 from higher_dist.bench.cluster_bench import stop_group
+from higher_dist.config_flags import DefaultsHelp
 from higher_dist.launch.local_cluster import cli_argv
 from higher_dist.launch.topology import free_base_port
 
@@ -105,7 +106,7 @@ def _cell(hit: dict | None) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser("higher-bench time-to-success", description=__doc__.splitlines()[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                formatter_class=DefaultsHelp)
     p.add_argument("--preset", default="her")
     p.add_argument("--world", default="paper")
     p.add_argument("--targets", type=float, nargs="+", default=[0.4, 0.6],

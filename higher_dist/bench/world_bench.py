@@ -63,7 +63,7 @@ def minigrid_steps_per_s(seconds: float, seed: int = 0) -> float | None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="higher-bench world", description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=2.0, help="time per measurement (default 2)")
+    parser.add_argument("--seconds", type=float, default=2.0, help="time per measurement (default: 2)")
     parser.add_argument("--world", default="paper", choices=("paper", "small"))
     parser.add_argument("--no-minigrid", action="store_true", help="skip the MiniGrid reference")
     args = parser.parse_args(argv)

@@ -48,7 +48,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", default=None, metavar="LIST",
                    help="only these variants or presets, comma-separated (e.g. dqn,her)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="a config override for every run")
-    p.add_argument("--actors", type=positive_int, default=None, help="actors per run (default fits the machine)")
+    p.add_argument("--actors", type=positive_int, default=None,
+                   help="actors per run (default: the layout for the cores each run gets, launch/layout.py)")
     p.add_argument("--generator-steps", type=positive_int, default=plan_mod.GENERATOR_STEPS,
                    help="Adam steps per generator run")
     p.add_argument("--dry-run", action="store_true", help="print the plan and its estimated cost; run nothing")

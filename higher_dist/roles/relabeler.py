@@ -85,11 +85,14 @@ class Relabeler:
         self.strategy.load_state_dict(state)
 
 
+DEFAULT_STATE_DIR = Path("runs") / "relabeler"  # its checkpoint without --state-dir (named in its --help)
+
+
 def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = False, bind_host: str | None = None,
                   security: Security | None = None, threads: int | None = None, advertise: str | None = None) -> int:
     client, cfg, endpoints, stop = start_role(learner, "relabeler", 0, security, threads)
     service = Relabeler(AgentBuilder(cfg), client.rejects)
-    rd = RunDir(state_dir or Path("runs") / "relabeler")
+    rd = RunDir(state_dir or DEFAULT_STATE_DIR)
     if resume:
         state = rd.load_checkpoint("relabeler")
         if state is not None:
