@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 TORCH_VERSION ?= 2.13.0
 
-.PHONY: install test test-fast test-deploy netns-tools slurm-tools systemd-tools cluster bench bench-time bench-gpu reproduce docs lint clean
+.PHONY: install test test-fast test-deploy netns-tools slurm-tools systemd-tools quick cluster bench bench-time bench-gpu reproduce docs lint clean
 
 # `make reproduce -- --dry-run --seeds 2 main`: the words after `reproduce` are higher-reproduce's
 # arguments (write `--seeds 2`, not `--seeds=2`: make takes NAME=VALUE words as its own variables).
@@ -61,9 +61,15 @@ systemd-tools:
 test-fast: install
 	$(BIN)/python -m pytest tests/unit
 
+# A first run: DQN+HER on the small world, 20k frames, about a minute on 2 cores (62 s measured).
+quick: install
+	$(BIN)/higher-cluster --preset her --world small --frames 20000 $(ARGS)
+
+# 5M frames: 60-80 minutes on the 2-core machine of docs/benchmarks.md (1,088-1,464 frames/s).
 cluster: install
 	$(BIN)/higher-cluster --preset higher --world paper $(ARGS)
 
+# The paper's profile, 5 seeds x 5M frames: about 32 hours on 2 cores (`make reproduce -- --dry-run`).
 reproduce: install
 	$(BIN)/higher-reproduce $(REPRODUCE_ARGS) $(ARGS)
 

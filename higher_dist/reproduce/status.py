@@ -8,7 +8,8 @@ The cost estimate divides the frames left by a frames/s figure, taken from the f
 exists, and says which one it used:
 1. runs of this plan's folder on the same world (measured here, at the parallelism they ran with);
 2. `results/cluster.json` from `make bench` on this machine;
-3. the figure measured on the 2-core development machine (docs/benchmarks.md: 1,100 frames/s per run).
+3. a figure below the mean of runs two at a time on the 2-core development machine (docs/benchmarks.md,
+   "End to end": 1,330 frames/s per run; 1,100 is used).
 A run's learner bounds its frame rate at a fixed samples-per-insert ratio, so a run whose config asks
 for more samples per frame is assumed proportionally slower.
 """
@@ -23,7 +24,7 @@ from higher_dist import metrics as m
 from higher_dist.reproduce.plan import Plan, RunSpec, default_parallel
 from higher_dist.rundir import last_record as _tail_record, read_metrics
 
-FALLBACK_FPS = 1100.0  # docs/benchmarks.md: her 1,055-1,176 frames/s per run, two runs at a time, 2-core machine
+FALLBACK_FPS = 1100.0  # docs/benchmarks.md, "End to end": 1,330 frames/s per run on average, two at a time, 2 cores
 FALLBACK_SPI = 4.0  # the samples per insert those figures ran at
 FALLBACK_GEN_STEPS_PER_S = 35.0  # docs/benchmarks.md: 1500 generator steps in 34-55 s
 GEN_OVERHEAD_S = 15.0  # drawing pairs and evaluating, per generator run
