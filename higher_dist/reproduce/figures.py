@@ -24,7 +24,7 @@ EVAL_TRAIN, EVAL_HELDOUT = m.SUCCESS_EVAL_TRAIN, m.SUCCESS_EVAL_HELDOUT
 EVALUATIONS = (EVAL_TRAIN, EVAL_HELDOUT, m.SUCCESS_EVAL_TRAIN_AVERAGED, m.SUCCESS_EVAL_HELDOUT_AVERAGED)
 MAIN_VARIANTS = ("dqn", "her", "higher", "reward")
 DPI, SIZE = 80, (6.0, 4.0)
-FINAL_EVALS = 3  # a run's end point: the mean of its last three greedy evaluations (DESIGN's "reaching X%")
+FINAL_EVALS = 3  # a run's end point: the mean of its last three greedy evaluations (docs/results.md)
 
 
 @dataclass

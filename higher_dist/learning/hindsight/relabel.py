@@ -1,6 +1,6 @@
 """Hindsight relabelling strategies: what a failed episode is stored again under.
 
-The paper's methods differ only here (see the table of methods in README.md):
+The paper's methods differ only here (config_presets.PRESET_RELABEL gives each preset its strategy):
 - `none`    (DQN, DQN+reward): nothing is relabelled;
 - `expert`  (DQN+HER): the picked object, described from ground truth (the expert reads it by design);
 - `noisy`   (DQN+HER noisy): the same with each attribute swapped to another value with probability p;
