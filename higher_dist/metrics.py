@@ -59,7 +59,7 @@ LEARNING_RATE = "learning_rate"  # the optimiser's, as of the last update (dqn.l
 SKIPPED_UPDATES = "skipped_updates"  # steps refused for a non-finite gradient [count]
 LOSS_COMPILED = "loss_compiled"  # 1 once the update runs the torch.compile'd loss [flag]
 COMPILE_PENDING = "compile_pending"  # 1 while that compile runs in the background (updates run eager) [flag]
-# What one DQN update reports (DQNLearner.update), each key every time.
+# What one DQN update reports (DQNUpdater.update), each key every time.
 DQN_KEYS = (LOSS, Q_MEAN, TD_ABS_MEAN, TARGET_MEAN, GRAD_NORM, SKIPPED_UPDATES, COMPILE_PENDING, LOSS_COMPILED)
 
 # -- relabelling ----------------------------------------------------------------------------------

@@ -142,7 +142,7 @@ def load_relabeller(cfg, run_dir: Path):
     from higher_dist.learning.agent import AgentBuilder
     from higher_dist.rundir import RunDir
 
-    strategy = AgentBuilder(cfg).relabeler()
+    strategy = AgentBuilder(cfg).relabel_strategy()
     if strategy.name != "learned":
         return strategy, ""
     state = RunDir(run_dir).load_checkpoint("relabeler")

@@ -3,7 +3,7 @@ and the pause it causes.
 
 The learner writes its checkpoint on its own thread (`Learner.checkpoint`: the state, replay included,
 copied and saved with fsync), so the pause is the whole write; a resume pays the load. Both are timed here
-on a LearnerCore whose replay is full of random but valid episodes, written to a real file in `--dir`
+on a Learner whose replay is full of random but valid episodes, written to a real file in `--dir`
 (default: a temp folder on the disk the run folder would use). Prints a table and a JSON line.
 """
 from __future__ import annotations
@@ -23,14 +23,14 @@ def measure(capacity: int | None, repeat: int, directory: Path) -> dict:
     from higher_dist.bench.learner_bench import fill_replay
     from higher_dist.config import override
     from higher_dist.config_presets import make_config
-    from higher_dist.learning.learner_core import LearnerCore
+    from higher_dist.learning.learner import Learner
     from higher_dist.rundir import RunDir
 
     torch.set_num_threads(1)
     cfg = make_config("higher", "paper")
     if capacity is not None:
         cfg = override(cfg, **{"replay.capacity": capacity})
-    core = LearnerCore(cfg)
+    core = Learner(cfg)
     fill_replay(core.replay, cfg.world.max_steps)
     rd = RunDir(directory)
     state_s, save_s, load_s = [], [], []
@@ -42,7 +42,7 @@ def measure(capacity: int | None, repeat: int, directory: Path) -> dict:
         path = rd.save_checkpoint("learner", state)
         t2 = time.perf_counter()
         loaded = rd.load_checkpoint("learner")
-        LearnerCore(cfg).load_state_dict(loaded["core"])  # the resume's own work: copied into a fresh core
+        Learner(cfg).load_state_dict(loaded["core"])  # the resume's own work: copied into a fresh core
         t4 = time.perf_counter()
         del state, loaded
         state_s.append(t1 - t0)

@@ -1,7 +1,7 @@
 """`higher-bench gpu` (`make bench-gpu`): the learner on a CUDA device and the whole cluster around it.
 
 Two measurements, in under 5 minutes on a GPU host, ending with one JSON line:
-- the learner alone (`LearnerCore.update` on a full synthetic replay: prioritized sampling on the host,
+- the learner alone (`Learner.update` on a full synthetic replay: prioritized sampling on the host,
   the batch through pinned buffers to the device, the DQN step there, priorities back), eager at each
   `--batch-sizes` and compiled at the default batch;
 - `higher-cluster` with the host's default layout (`launch/layout.py`: a GPU learner leaves every core

@@ -1,6 +1,6 @@
 """Learner speed: samples/s at batch 64, 128, 256, and what each speed lever is worth.
 
-Every row runs the learner's real step, `LearnerCore.update`: prioritized sampling from a full
+Every row runs the learner's real step, `Learner.update`: prioritized sampling from a full
 100k-transition replay of random but valid episodes, the DQN step (forwards, backward, clipping, Adam,
 target update) and the priority update. A row is one setting of the levers of `DQNConfig` (compile,
 joint_online, prefetch) plus bf16 autocast, which is not a config field (it measured slower here).
@@ -28,7 +28,7 @@ import torch
 
 from higher_dist.bench import compute_bound
 from higher_dist.config import DQNConfig, NetworkConfig
-from higher_dist.learning.dqn import DQNLearner
+from higher_dist.learning.dqn import DQNUpdater
 from higher_dist.learning.networks import count_parameters
 from higher_dist.world.spec import DEFAULT_SPEC, VIEW_CHANNEL_VALUES
 
@@ -64,7 +64,7 @@ def synthetic_batch(rng: np.random.Generator, batch_size: int, frame_stack: int,
     )
 
 
-def measure(learner: DQNLearner, batches: list[SimpleNamespace], seconds: float, warmup: int) -> dict[str, float]:
+def measure(learner: DQNUpdater, batches: list[SimpleNamespace], seconds: float, warmup: int) -> dict[str, float]:
     for i in range(warmup):
         learner.update(batches[i % len(batches)])
     n = 0
@@ -159,16 +159,16 @@ def lever_rows() -> list[Lever]:
 
 
 def make_core(batch_size: int, lever: Lever, cfg=None, threads: int = 1):
-    """A LearnerCore with a full replay of synthetic episodes, its loss compiled when the lever says so.
+    """A Learner with a full replay of synthetic episodes, its loss compiled when the lever says so.
     Returns (core, seconds spent compiling or None)."""
     from higher_dist.config import override
     from higher_dist.config_presets import make_config
-    from higher_dist.learning.learner_core import LearnerCore
+    from higher_dist.learning.learner import Learner
 
     cfg = cfg or make_config("higher", "paper")
     cfg = override(cfg, **{"dqn.batch_size": batch_size, "replay.capacity": 100_000, **lever.dqn_overrides()})
     torch.set_num_threads(max(1, threads))
-    core = LearnerCore(cfg)
+    core = Learner(cfg)
     fill_replay(core.replay, cfg.world.max_steps)
     compile_s = None
     if core.dqn.compiled is not None:
@@ -198,7 +198,7 @@ def time_updates(core, seconds: float, warmup: int = 5, bf16: bool = False) -> d
 
 
 def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmup: int = 5, threads: int = 1) -> float:
-    """Updates/s of the learner alone, through the same path as in the cluster (LearnerCore.update,
+    """Updates/s of the learner alone, through the same path as in the cluster (Learner.update,
     with the config's levers, compiled before timing), on `threads` torch threads."""
     from higher_dist.config_presets import make_config
 
@@ -272,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         levers = [Lever("eager (all levers off)"), default_lever()]
     print(f"learner bench: {args.threads} thread(s), torch {torch.__version__}, "
-          f"{count_parameters(DQNLearner(cfg.network, DQNConfig(compile=False)).online)} parameters, "
+          f"{count_parameters(DQNUpdater(cfg.network, DQNConfig(compile=False)).online)} parameters, "
           f"full prioritized replay, median of {args.repeat} interleaved round(s) of {args.seconds:g} s")
     if args.overrides:
         print("config overrides: " + " ".join(args.overrides))
@@ -325,10 +325,10 @@ def _network_shape(args, sizes: list[int]) -> int:
     dqn_cfg = DQNConfig(compile=False)
     rng = np.random.default_rng(args.seed)
     print(f"network {dataclasses.asdict(net_cfg)}, "
-          f"{count_parameters(DQNLearner(net_cfg, dqn_cfg).online)} parameters, eager")
+          f"{count_parameters(DQNUpdater(net_cfg, dqn_cfg).online)} parameters, eager")
     summary: dict[str, object] = {"network": dataclasses.asdict(net_cfg)}
     for b in sizes:
-        learner = DQNLearner(net_cfg, dqn_cfg, seed=args.seed)
+        learner = DQNUpdater(net_cfg, dqn_cfg, seed=args.seed)
         batches = [synthetic_batch(rng, b, net_cfg.frame_stack, gamma=dqn_cfg.gamma, n_step=dqn_cfg.n_step)
                    for _ in range(_POOL)]
         r = measure(learner, batches, args.seconds, 10)

@@ -21,7 +21,7 @@ from dataclasses import replace
 
 from higher_dist.config import WorldConfig
 from higher_dist.learning.episode import Episode
-from higher_dist.learning.samples import real_episodes
+from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.world.spec import WorldSpec
 from higher_dist.wire import (RejectCounter, bind_random, decode, decode_weights, encode, encode_weights,
                               make_socket, pack_episodes, recv_message, send, unpack_episodes)

@@ -14,8 +14,8 @@ from higher_dist import metrics as m
 from higher_dist.config import Config
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate_goal_sets
 from higher_dist.learning.exploration import Explorer, actor_epsilons
-from higher_dist.learning.learner_core import LearnerCore
-from higher_dist.learning.hindsight.relabel import RelabelStrategy, make_relabeler
+from higher_dist.learning.learner import Learner
+from higher_dist.learning.hindsight.relabel import RelabelStrategy, make_relabel_strategy
 from higher_dist.learning.seeds import Seeds
 from higher_dist.world.spec import WorldSpec
 
@@ -84,11 +84,11 @@ class AgentBuilder:
         self.seeds = Seeds(cfg.seed)
 
     # -- components --------------------------------------------------------------------------------
-    def learner_core(self, device: str | None = None) -> LearnerCore:
-        return LearnerCore(self.cfg, device=device)
+    def learner(self, device: str | None = None) -> Learner:
+        return Learner(self.cfg, device=device)
 
-    def relabeler(self) -> RelabelStrategy:
-        return make_relabeler(self.cfg, seed=self.seeds.relabeler)
+    def relabel_strategy(self) -> RelabelStrategy:
+        return make_relabel_strategy(self.cfg, seed=self.seeds.relabeler)
 
     def generator_pace(self) -> GeneratorPace:
         return GeneratorPace(self.cfg.generator.updates_per_kframe)

@@ -1,6 +1,6 @@
 """Double DQN with n-step returns, Huber loss and importance weights; the learner that steps it.
 
-`dqn_loss` is a pure function of two Q-functions and a batch of tensors. `DQNLearner` owns the
+`dqn_loss` is a pure function of two Q-functions and a batch of tensors. `DQNUpdater` owns the
 online/target networks and the optimizer and takes numpy batches from the replay, returning new
 priorities as data (the replay is updated by the caller).
 """
@@ -21,7 +21,7 @@ from higher_dist.learning.devices import resolve_device
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 from higher_dist.learning.networks import QNetwork, load_weights_numpy, weights_numpy
 
-__all__ = ["TransitionBatchLike", "dqn_terms", "dqn_loss", "learning_rate_at", "DQNLearner"]
+__all__ = ["TransitionBatchLike", "dqn_terms", "dqn_loss", "learning_rate_at", "DQNUpdater"]
 
 
 # The tensors the loss reads from a batch, and their dtypes (built once: `_tensors` runs every update).
@@ -30,7 +30,7 @@ _BATCH_DTYPES = {"obs": torch.uint8, "mission": torch.long, "action": torch.long
 
 
 class TransitionBatchLike(Protocol):
-    """What `DQNLearner.update` reads (the replay's batch satisfies it by duck typing).
+    """What `DQNUpdater.update` reads (the replay's batch satisfies it by duck typing).
 
     reward is the n-step return already summed; discount is gamma^m for the m steps actually taken,
     or 0 when the window ended at a terminal pick (a time-out keeps gamma^m: it bootstraps).
@@ -137,7 +137,7 @@ def _make_adam(params: list[nn.Parameter], lr: float, eps: float) -> torch.optim
         return torch.optim.Adam(params, lr=lr, eps=eps, foreach=True)
 
 
-class DQNLearner:
+class DQNUpdater:
     """Online and target Q-networks, Adam, and the target-update schedule."""
 
     def __init__(self, net_cfg: NetworkConfig, dqn_cfg: DQNConfig, device: str = "cpu",

@@ -26,8 +26,8 @@ class SingleProcessRunner:
         self.agent = AgentBuilder(cfg)
         torch.manual_seed(self.agent.seeds.learner_torch)  # the learner's process RNG: this is its process
         self.log = log or (lambda record: None)
-        self.core = self.agent.learner_core()
-        self.relabeler = self.agent.relabeler()
+        self.core = self.agent.learner()
+        self.relabeler = self.agent.relabel_strategy()
         self.pace = self.agent.generator_pace()
         self.collectors = [self.agent.collector(i) for i in range(cfg.actors)]
         self.rngs = [self.agent.exploration_rng(i) for i in range(cfg.actors)]

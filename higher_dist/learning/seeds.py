@@ -8,7 +8,7 @@ hash collides. In particular two run seeds never evaluate on the same episodes, 
 seed and frame count always evaluate on the same ones.
 
 This module is the one place that knows how a seed is made; every component takes the integer it is
-handed (DQNLearner's `seed`, a world's `env_seeds`, ...).
+handed (DQNUpdater's `seed`, a world's `env_seeds`, ...).
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The learner role: the head of the cluster.
 
-A short loop around `LearnerCore`: answer control messages (roles/control_server.py), take episode
+A short loop around `Learner`: answer control messages (roles/control_server.py), take episode
 batches while the samples-per-insert ratio allows (otherwise the sockets' high-water marks push back on
 the relabeler and the actors), run DQN updates, publish weights, start greedy evaluations on a
 background thread, write metrics and telemetry, checkpoint. Ends when the frame budget is reached or on
@@ -54,7 +54,7 @@ TELEMETRY_EVERY_S = 0.5
 WEIGHTS_REPUBLISH_S = 2.0  # late subscribers (a restarted actor) get weights within this time
 
 
-class LearnerRole:
+class LearnerService:
     def __init__(self, cfg: Config, endpoints: Endpoints, run_dir: str, resume: bool = False,
                  bind_host: str | None = None, security: Security | None = None, threads: int | None = None,
                  layout: str | None = None):
@@ -70,7 +70,7 @@ class LearnerRole:
         check_binds(endpoints, bind_host, self.security, binder="learner")
         self.rd = RunDir(run_dir, tensorboard=cfg.tensorboard)
         self.agent = AgentBuilder(cfg)
-        self.core = self.agent.learner_core()
+        self.core = self.agent.learner()
         self.evaluator = BackgroundEvaluator(self.agent)
         self.registry = RoleRegistry(dead_after_s=cfg.role_grace_s)
         self.rejects = sockets.RejectCounter()
@@ -279,4 +279,4 @@ def run_learner(cfg: Config, endpoints: Endpoints, run_dir: str, resume: bool = 
                 layout: str | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     config_mod.validate(cfg)
-    return LearnerRole(cfg, endpoints, run_dir, resume, bind_host, security, threads, layout).run()
+    return LearnerService(cfg, endpoints, run_dir, resume, bind_host, security, threads, layout).run()

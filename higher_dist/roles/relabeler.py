@@ -39,14 +39,14 @@ MAX_BACKLOG = 8 * TRAIN_SLICE  # owed updates beyond which no new episodes are r
 WAIT_MS = 20  # longest wait on a socket before looking at control, training and stats again
 
 
-class Relabeler:
+class RelabelerService:
     """What the service does with one message, apart from the sockets: `check` (what the loop guards: a
     message that fails it is dropped and counted) and `relabel` (its own work: an exception there is an
     internal error that stops the relabeler)."""
 
     def __init__(self, agent: AgentBuilder, rejects: sockets.RejectCounter):
         self.agent, self.rejects = agent, rejects
-        self.strategy = agent.relabeler()
+        self.strategy = agent.relabel_strategy()
         self.pace = agent.generator_pace()
         self.trainable = self.strategy.name == "learned"  # only the generator has anything to train
         self.received = self.relabelled = 0
@@ -91,7 +91,7 @@ DEFAULT_STATE_DIR = Path("runs") / "relabeler"  # its checkpoint without --state
 def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = False, bind_host: str | None = None,
                   security: Security | None = None, threads: int | None = None, advertise: str | None = None) -> int:
     client, cfg, endpoints, stop = start_role(learner, "relabeler", 0, security, threads)
-    service = Relabeler(AgentBuilder(cfg), client.rejects)
+    service = RelabelerService(AgentBuilder(cfg), client.rejects)
     rd = RunDir(state_dir or DEFAULT_STATE_DIR)
     if resume:
         state = rd.load_checkpoint("relabeler")

@@ -15,7 +15,7 @@ from higher_dist.config_presets import make_config
 from higher_dist.launch.topology import Endpoints, free_base_port
 from higher_dist.learning.episode import TIMEOUT
 from higher_dist.learning.hindsight.relabel import ExpertRelabel
-from higher_dist.learning.samples import real_episodes
+from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.wire import codec
 from higher_dist.wire.episodes import pack_episodes
 from higher_dist.world.spec import WorldSpec

@@ -104,7 +104,7 @@ def test_a_relabeler_that_fails_in_its_relabelling_stops_and_keeps_its_checkpoin
     try:
         learner = watch.add(Proc(entry("learner", *config_flags(10_000_000, actors=1), "--run-dir", run_dir,
                                        "--port-base", port_base), tmp_path / "learner.out", tmp_path))
-        relabeler = watch.add(Proc(faulty("higher_dist.roles.relabeler:Relabeler.relabel", 1, 0, record, "relabeler",
+        relabeler = watch.add(Proc(faulty("higher_dist.roles.relabeler:RelabelerService.relabel", 1, 0, record, "relabeler",
                                           "--learner", control, "--state-dir", state_dir),
                                    tmp_path / "relabeler.out", tmp_path))
         watch.add(Proc(entry("actor", "--learner", control, "--actor-id", "0"), tmp_path / "actor.out", tmp_path))
@@ -113,7 +113,7 @@ def test_a_relabeler_that_fails_in_its_relabelling_stops_and_keeps_its_checkpoin
         good = written(record)
         assert good, out
         assert cause_lines(out, "relabeler") == [
-            f"relabeler: internal error in relabelling: RuntimeError: injected fault in Relabeler.relabel "
+            f"relabeler: internal error in relabelling: RuntimeError: injected fault in RelabelerService.relabel "
             f"(last good checkpoint kept: {good[-1]['path']})"], out
         assert on_disk(good[-1]["path"]) == good[-1]
         assert "handler_error" not in out

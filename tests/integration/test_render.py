@@ -189,7 +189,7 @@ def test_babyai_watch_takes_a_picture_before_every_action(babyai_run):
 def test_babyai_panel_of_a_time_out_after_a_pickup_names_the_relabel(babyai_run):
     from higher_dist.config_presets import make_config
     from higher_dist.learning.agent import AgentBuilder
-    from higher_dist.learning.samples import real_episodes
+    from higher_dist.learning.random_episodes import real_episodes
     from higher_dist.world import babyai_language as lang
     from higher_dist.world.spec import TIMEOUT, WorldSpec
 
@@ -216,7 +216,7 @@ def test_babyai_panel_of_a_time_out_after_a_pickup_names_the_relabel(babyai_run)
         if ep.outcome != TIMEOUT or ep.pick_step < 0:
             assert render.relabel_text(strategy, note, ep, rng, spec) == ""
     # HIGhER's generator describes the frame before the first pickup, in the level's language.
-    learned = AgentBuilder(make_config("higher", LEVEL)).relabeler()
+    learned = AgentBuilder(make_config("higher", LEVEL)).relabel_strategy()
     seen = []
     generate = learned.trainer.generate
     learned.trainer.generate = lambda views: seen.append(views.copy()) or generate(views)

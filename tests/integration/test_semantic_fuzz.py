@@ -19,7 +19,7 @@ import zmq
 from hd_harness import Proc, RunWatch, entry, push_socket
 from higher_dist.config_presets import make_config
 from higher_dist.launch.topology import Endpoints, free_base_port
-from higher_dist.learning.samples import real_episodes
+from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.wire import codec
 from higher_dist.wire.episodes import pack_episodes
 from support.mutate import MUTATIONS, Pools, hostile_message

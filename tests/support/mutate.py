@@ -1,6 +1,6 @@
 """Structure-aware hostile episodes: messages that pass the codec's schema but are wrong for the run.
 
-Each mutation takes real episodes (learning/samples.py) and breaks one thing a peer could lie about;
+Each mutation takes real episodes (learning/random_episodes.py) and breaks one thing a peer could lie about;
 `hostile_message` returns the encoded frames together with what the receiver must do with them (how
 many episodes it must drop, under which reason). The fuzz tests drive real learners and relabelers with
 these. Used only to attack this project's own processes.

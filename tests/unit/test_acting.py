@@ -5,7 +5,7 @@ import torch
 
 from higher_dist.config_presets import make_config, small_world
 from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate
-from higher_dist.learning.dqn import DQNLearner
+from higher_dist.learning.dqn import DQNUpdater
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK
 from higher_dist.learning.seeds import Seeds
 from higher_dist.world.grid import ACTION_FORWARD, ACTION_LEFT, ACTION_PICK, KIND_EMPTY, KIND_KEY, BatchedFetchAttr
@@ -76,7 +76,7 @@ def test_greedy_evaluation_returns_a_rate_over_the_requested_episodes():
     torch.set_num_threads(1)
     cfg = make_config("her", "small")
     q = TorchQFunction(cfg.network)
-    q.load(DQNLearner(cfg.network, cfg.dqn).weights_numpy())
+    q.load(DQNUpdater(cfg.network, cfg.dqn).weights_numpy())
     env_seeds = Seeds(0).evaluation_env_seeds(0, 20)
     rate, se = evaluate(q, cfg.world, cfg.network.frame_stack, "heldout", env_seeds, n_envs=8)
     assert 0.0 <= rate <= 1.0 and se == pytest.approx((rate * (1 - rate) / 20) ** 0.5)

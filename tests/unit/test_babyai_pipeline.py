@@ -14,9 +14,9 @@ from hypothesis import strategies as st
 from higher_dist.config import ConfigError, GeneratorConfig
 from higher_dist.config_presets import make_config
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
-from higher_dist.learning.hindsight.relabel import ExpertRelabel, LearnedRelabel, make_relabeler
-from higher_dist.learning.learner_core import LearnerCore
-from higher_dist.learning.samples import real_episodes
+from higher_dist.learning.hindsight.relabel import ExpertRelabel, LearnedRelabel, make_relabel_strategy
+from higher_dist.learning.learner import Learner
+from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.wire import WireError, decode, encode, pack_episodes, unpack_episodes
 from higher_dist.world import babyai_language as lang
 from higher_dist.world.spec import WorldSpec
@@ -51,7 +51,7 @@ def test_levels_and_methods_that_do_not_fit_are_refused_by_name():
     with pytest.raises(ConfigError, match="world.reward_shaping"):
         make_config("reward", LEVEL)
     with pytest.raises(ValueError, match="noisy"):
-        make_relabeler(make_config("noisy-her", LEVEL), seed=0)
+        make_relabel_strategy(make_config("noisy-her", LEVEL), seed=0)
     with pytest.raises(ConfigError, match="world: unknown world 'BabyAl'"):
         make_config("her", "BabyAl")
 
@@ -92,7 +92,7 @@ def test_honest_episodes_and_their_copies_pass_the_boundary_and_fill_the_replay(
     back, rejects = _unpack(episodes, n_actors=1)
     assert rejects == [] and len(back) == len(episodes)
     assert all((a.pick_step, a.length) == (b.pick_step, b.length) for a, b in zip(back, episodes))
-    core = LearnerCore(CFG)
+    core = Learner(CFG)
     core.add_episodes(back)
     assert len(core.replay) == sum(ep.length for ep in back)
     assert core.replay.composition()["relabelled"] > 0
@@ -147,7 +147,7 @@ def test_random_damage_is_dropped_or_harmless(array_name, where, value):
         back = unpack_episodes(decode(frames), SPEC, reject=lambda reason: None)
     except WireError:
         return
-    core = LearnerCore(CFG)
+    core = Learner(CFG)
     core.add_episodes(back)
     ExpertRelabel(spec=SPEC).relabel(back)
 
@@ -155,7 +155,7 @@ def test_random_damage_is_dropped_or_harmless(array_name, where, value):
 def test_the_generator_learns_from_the_levels_successes_and_describes_the_picks():
     small = GeneratorConfig(embed_dim=8, conv_channels=(16, 16), word_embed_dim=16, hidden=64, lr=3e-3,
                             batch_size=32, capacity=2000, n_min=50, min_accuracy=0.5, eval_every_updates=100)
-    strategy = make_relabeler(make_config("higher", LEVEL, generator=small), seed=0)
+    strategy = make_relabel_strategy(make_config("higher", LEVEL, generator=small), seed=0)
     assert isinstance(strategy, LearnedRelabel)
     successes = [ep for ep in EPISODES + real_episodes(CFG.world, 150, seed=7) if ep.outcome == SUCCESS]
     strategy.observe(successes)

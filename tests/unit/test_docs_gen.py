@@ -32,12 +32,12 @@ def test_every_metric_key_has_a_meaning_and_the_presets_differences_are_named():
 def test_every_key_the_learner_records_is_in_the_metrics_reference():
     from higher_dist import metrics as m
     from higher_dist.config_presets import make_config
-    from higher_dist.learning.learner_core import LearnerCore
-    from higher_dist.learning.samples import real_episodes
+    from higher_dist.learning.learner import Learner
+    from higher_dist.learning.random_episodes import real_episodes
     from higher_dist.roles.registry import RoleRegistry
 
     cfg = make_config("her", "small", **{"replay.min_size": 50})
-    core = LearnerCore(cfg)
+    core = Learner(cfg)
     core.add_episodes(real_episodes(cfg.world, 12, seed=1, relabelled=True))
     core.train_available(max_updates=2)
     record = {**core.metrics(), **RoleRegistry().telemetry({"role": "learner"}, 0, {}), **dict.fromkeys(m.RELABEL_KEYS)}

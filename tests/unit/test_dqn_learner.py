@@ -1,4 +1,4 @@
-"""DQNLearner's update: priorities, target schedule, gradient clipping, non-finite batches, checkpoints,
+"""DQNUpdater's update: priorities, target schedule, gradient clipping, non-finite batches, checkpoints,
 published weights, the compiled and joint paths, the averaged weights and the learning-rate schedule."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from higher_dist.config import ConfigError, DQNConfig, from_dict
-from higher_dist.learning.dqn import DQNLearner, dqn_loss, learning_rate_at
+from higher_dist.learning.dqn import DQNUpdater, dqn_loss, learning_rate_at
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
 from higher_dist.world.spec import DEFAULT_SPEC
 from support.dqn_batches import SMALL, batch_tensors, needs_cxx, random_batch
@@ -18,9 +18,9 @@ from support.dqn_batches import SMALL, batch_tensors, needs_cxx, random_batch
 torch.set_num_threads(1)
 
 
-def make_learner(**dqn_overrides) -> DQNLearner:
+def make_learner(**dqn_overrides) -> DQNUpdater:
     # Eager unless a test asks: a background compile would switch paths in the middle of a test.
-    return DQNLearner(SMALL, DQNConfig(**{"compile": False, **dqn_overrides}), seed=0)
+    return DQNUpdater(SMALL, DQNConfig(**{"compile": False, **dqn_overrides}), seed=0)
 
 
 def params_of(net: nn.Module) -> list[torch.Tensor]:
@@ -119,7 +119,7 @@ def test_state_dict_resumes_exactly() -> None:
     for batch in batches[:3]:
         a.update(batch)
     state = copy.deepcopy(a.state_dict())
-    b = DQNLearner(SMALL, DQNConfig(target_period=2, compile=False), seed=123)
+    b = DQNUpdater(SMALL, DQNConfig(target_period=2, compile=False), seed=123)
     b.load_state_dict(state)
     assert b.updates == 3
     prio_a, _ = a.update(batches[3])
@@ -143,7 +143,7 @@ def test_published_weights_reproduce_the_learners_q_values() -> None:
     assert q_learner.shape == (5, DEFAULT_SPEC.n_actions)
     np.testing.assert_array_equal(q_actor, q_learner)
     # Loading into the learner sets both networks.
-    other = DQNLearner(SMALL, DQNConfig(compile=False), seed=99)
+    other = DQNUpdater(SMALL, DQNConfig(compile=False), seed=99)
     other.load_weights_numpy(learner.weights_numpy())
     assert same(params_of(other.online), params_of(learner.online))
     assert same(params_of(other.target), params_of(learner.online))
@@ -244,15 +244,15 @@ def test_learning_rate_falls_linearly_to_its_end_fraction_then_stays(frames, exp
     assert learning_rate_at(DQNConfig(lr=1e-3, lr_decay_frames=0), frames) == 1e-3  # 0 decay frames: constant
 
 
-def test_the_learner_core_steps_with_the_scheduled_learning_rate() -> None:
+def test_the_learner_steps_with_the_scheduled_learning_rate() -> None:
     """The optimiser's lr follows the learner's frame count (original episodes only), update by update."""
     from higher_dist.config_presets import make_config
     from higher_dist.learning.acting import EpisodeCollector
-    from higher_dist.learning.learner_core import LearnerCore
+    from higher_dist.learning.learner import Learner
 
     cfg = make_config("dqn", "small", **{"replay.min_size": 100, "dqn.batch_size": 16, "dqn.lr": 1e-3,
                                          "dqn.lr_decay_frames": 600, "dqn.lr_end_fraction": 0.2})
-    core = LearnerCore(cfg)
+    core = Learner(cfg)
     collector = EpisodeCollector(cfg.world, 8, cfg.network.frame_stack, seed=3)
     rng = np.random.default_rng(3)
     seen = []

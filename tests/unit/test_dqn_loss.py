@@ -1,5 +1,5 @@
 """dqn_loss against a numpy reference on hand-made and random batches, and the shared mission encoding
-(DQNLearner's update is tested in test_dqn_learner.py)."""
+(DQNUpdater's update is tested in test_dqn_learner.py)."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from torch import nn
 
 from higher_dist.learning.compiled_loss import CompiledLoss
-from higher_dist.learning.dqn import DQNLearner, dqn_loss, dqn_terms
+from higher_dist.learning.dqn import DQNUpdater, dqn_loss, dqn_terms
 from higher_dist.learning.networks import QNetwork
 from support.dqn_batches import GAMMA, SMALL, batch_tensors, needs_cxx, random_batch
 

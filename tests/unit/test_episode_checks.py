@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from higher_dist.config_presets import make_config
-from higher_dist.learning.learner_core import LearnerCore
-from higher_dist.learning.samples import real_episodes
+from higher_dist.learning.learner import Learner
+from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.wire import WireError, decode, encode, pack_episodes, unpack_episodes
 from support.mutate import MUTATIONS, Pools, hostile_message
 from higher_dist.world.spec import WorldSpec
@@ -68,7 +68,7 @@ def test_whatever_passes_can_be_stored(array_name, position, value):
                           n_actors=2)
     except WireError:
         return
-    core = LearnerCore(CFG["small"])
+    core = Learner(CFG["small"])
     core.add_episodes(back)  # must not raise
     assert core.episodes + core.relabelled_episodes == len(back)
     assert msg.type == "episodes"

@@ -11,7 +11,7 @@ import pytest
 
 from higher_dist.config import WorldConfig
 from higher_dist.config_presets import make_config
-from higher_dist.learning.samples import real_episodes
+from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.wire import pack_episodes
 from higher_dist.world.episode_rules import episode_faults
 from higher_dist.world.grid import pick_reward

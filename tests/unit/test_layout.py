@@ -82,12 +82,12 @@ def test_bad_device_and_thread_settings_are_refused_by_name(field, value):
 
 
 def test_the_learner_falls_back_to_the_cpu_and_learns_there():
-    from higher_dist.learning.learner_core import LearnerCore
-    from higher_dist.learning.samples import real_episodes
+    from higher_dist.learning.learner import Learner
+    from higher_dist.learning.random_episodes import real_episodes
 
     cfg = make_config("her", "small", **{"replay.min_size": 50, "dqn.batch_size": 8})
     assert cfg.device == "auto"
-    core = LearnerCore(cfg)
+    core = Learner(cfg)
     if torch.cuda.is_available():
         pytest.skip("this host has a CUDA device: the CPU fallback is for hosts without one")
     assert {p.device.type for p in core.dqn.online.parameters()} == {"cpu"}

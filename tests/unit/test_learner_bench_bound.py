@@ -13,7 +13,7 @@ from torch import nn
 from higher_dist.bench import compute_bound, main
 from higher_dist.bench.learner_bench import bench_config, synthetic_batch
 from higher_dist.config import ConfigError, DQNConfig, NetworkConfig
-from higher_dist.learning.dqn import DQNLearner
+from higher_dist.learning.dqn import DQNUpdater
 
 torch.set_num_threads(1)
 
@@ -38,7 +38,7 @@ def test_conv2d_counts_every_output_cell_of_every_kernel():
 @pytest.mark.parametrize("film_blocks", [0, 2])
 def test_q_network_forwards_match_the_count_from_layer_shapes(film_blocks):
     cfg = NetworkConfig(**{**SMALL.__dict__, "film_blocks": film_blocks})
-    learner = DQNLearner(cfg, DQNConfig(compile=False))
+    learner = DQNUpdater(cfg, DQNConfig(compile=False))
     t = learner._tensors(synthetic_batch(np.random.default_rng(0), 16, cfg.frame_stack))
     steps = int((t["mission"] != 0).sum(dim=1).max())
     net, b = learner.online, 16
@@ -55,7 +55,7 @@ def test_q_network_forwards_match_the_count_from_layer_shapes(film_blocks):
 
 
 def test_bound_figures_and_their_lines():
-    learner = DQNLearner(SMALL, DQNConfig(compile=False))
+    learner = DQNUpdater(SMALL, DQNConfig(compile=False))
     t = learner._tensors(synthetic_batch(np.random.default_rng(1), 8, SMALL.frame_stack))
     figures = compute_bound.bound(learner, t)
     assert figures["flops_per_sample"] == compute_bound.count_update(learner, t).total / 8

@@ -9,9 +9,9 @@ import pytest
 
 from higher_dist import metrics as m
 from higher_dist.config_presets import make_config
-from higher_dist.learning.hindsight.relabel import make_relabeler
-from higher_dist.learning.learner_core import LearnerCore
-from higher_dist.learning.samples import real_episodes
+from higher_dist.learning.hindsight.relabel import make_relabel_strategy
+from higher_dist.learning.learner import Learner
+from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.roles.registry import RoleRegistry
 
 SRC = pathlib.Path(__file__).resolve().parents[2] / "higher_dist"
@@ -22,7 +22,7 @@ PREFIXES = {value for name, value in vars(m).items() if name.endswith("_PREFIX")
 METRIC_MODULES = sorted({*SRC.glob("roles/*.py"), *SRC.glob("analysis/*.py"), SRC / "reproduce/archive.py",
                          SRC / "reproduce/figures.py", SRC / "reproduce/status.py",
                          SRC / "learning/dqn.py",
-                         SRC / "learning/hindsight/relabel.py", SRC / "learning/learner_core.py",
+                         SRC / "learning/hindsight/relabel.py", SRC / "learning/learner.py",
                          SRC / "learning/runner.py", SRC / "learning/acting.py", SRC / "learning/agent.py",
                          SRC / "plot.py"})
 READERS = sorted({*SRC.glob("analysis/*.py"), *SRC.glob("reproduce/*.py"), SRC / "roles/dashboard_view.py",
@@ -98,7 +98,7 @@ def test_every_metric_constant_used_in_the_source_is_declared():
 @pytest.fixture(scope="module")
 def trained_core():
     cfg = make_config("her", "small", **{"replay.min_size": 50})
-    core = LearnerCore(cfg)
+    core = Learner(cfg)
     core.add_episodes(real_episodes(cfg.world, 12, seed=1, relabelled=True))
     core.train_available(max_updates=2)
     assert core.updates > 0
@@ -114,12 +114,12 @@ def test_a_dqn_update_reports_exactly_the_declared_keys(trained_core):
 def test_every_relabel_strategy_reports_exactly_the_declared_keys(strategy):
     cfg = make_config("higher" if strategy == "learned" else "her", "small",
                       **{"relabel.strategy": strategy})
-    assert list(make_relabeler(cfg, seed=0).metrics()) == list(m.RELABEL_KEYS)
+    assert list(make_relabel_strategy(cfg, seed=0).metrics()) == list(m.RELABEL_KEYS)
 
 
 def _emitted_record(cfg, core) -> dict:
     return {**core.metrics(), **RoleRegistry().telemetry({m.ROW_ROLE: "learner"}, 0, {}),
-            **make_relabeler(cfg, seed=0).metrics()}
+            **make_relabel_strategy(cfg, seed=0).metrics()}
 
 
 def test_every_key_a_writer_emits_is_declared(trained_core):

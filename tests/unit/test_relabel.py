@@ -12,7 +12,7 @@ from higher_dist.config import GeneratorConfig, WorldConfig
 from higher_dist.config_presets import make_config
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
 from higher_dist.learning.hindsight.relabel import (ExpertRelabel, LearnedRelabel, NoisyExpertRelabel, RelabelStrategy,
-                                          make_relabeler)
+                                          make_relabel_strategy)
 from higher_dist.rundir import RunDir
 from higher_dist.world.language import VOCAB, expert_tokens, parse
 from higher_dist.world.objects import ObjectSpace
@@ -224,11 +224,11 @@ def test_factory_builds_each_preset_strategy():
     kinds = {"dqn": RelabelStrategy, "reward": RelabelStrategy, "her": ExpertRelabel,
              "noisy-her": NoisyExpertRelabel, "higher": LearnedRelabel}
     for preset, kind in kinds.items():
-        strategy = make_relabeler(make_config(preset, "small"), seed=0)
+        strategy = make_relabel_strategy(make_config(preset, "small"), seed=0)
         assert type(strategy) is kind, preset
-    noisy = make_relabeler(make_config("noisy-her", "small"), seed=0)
+    noisy = make_relabel_strategy(make_config("noisy-her", "small"), seed=0)
     assert noisy.p == 0.2
-    learned = make_relabeler(make_config("higher", "small"), seed=0)
+    learned = make_relabel_strategy(make_config("higher", "small"), seed=0)
     assert learned.cfg.n_min == 100
 
 

@@ -109,8 +109,8 @@ def test_two_runs_with_one_seed_draw_the_same_streams_and_other_seeds_do_not():
         assert not np.array_equal(a.collector(actor).observation()[0], c.collector(actor).observation()[0])
         assert a.exploration_rng(actor).random() == b.exploration_rng(actor).random()
         assert a.exploration_rng(actor).random() != c.exploration_rng(actor).random()
-    assert a.relabeler().rng.random() == b.relabeler().rng.random() != c.relabeler().rng.random()
-    wa, wb, wc = (x.learner_core().dqn.weights_numpy() for x in (a, b, c))
+    assert a.relabel_strategy().rng.random() == b.relabel_strategy().rng.random() != c.relabel_strategy().rng.random()
+    wa, wb, wc = (x.learner().dqn.weights_numpy() for x in (a, b, c))
     assert all(np.array_equal(wa[k], wb[k]) for k in wa)
     assert not all(np.array_equal(wa[k], wc[k]) for k in wa)
 
@@ -125,7 +125,7 @@ def test_the_builders_components_draw_from_their_own_streams():
     torch.set_num_threads(1)
     cfg = make_config("higher", "small", seed=2)
     agent, seeds = AgentBuilder(cfg), Seeds(2)
-    core = agent.learner_core()
+    core = agent.learner()
     online = core.dqn.online.state_dict()
 
     def same(weights):
@@ -138,7 +138,7 @@ def test_the_builders_components_draw_from_their_own_streams():
     assert not same(initial_weights(cfg, agent.spec, seeds.learner_torch))
     assert core.replay._rng.bit_generator.state == np.random.default_rng(seeds.learner_replay).bit_generator.state
     # The relabeler: its draws, its generator's initialisation, dataset split and minibatches.
-    strategy = agent.relabeler()
+    strategy = agent.relabel_strategy()
     rs = seeds.relabeler
     assert strategy.rng.bit_generator.state == np.random.default_rng(rs.draws).bit_generator.state
     assert strategy.trainer.rng.bit_generator.state == np.random.default_rng(rs.generator_batches).bit_generator.state

@@ -1,5 +1,5 @@
 """The one-place knowledge: the world spec, the agent builder (seeds, cadences, generator pace), the
-limiter's tolerance, LearnerCore's counters, the config's override / from_dict / validate; and the house's
+limiter's tolerance, Learner's counters, the config's override / from_dict / validate; and the house's
 shape: the import graph's layers and cycles (every import, function-level ones too), and file sizes."""
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ import pytest
 from higher_dist.config import ConfigError, WorldConfig, from_dict, override, validate
 from higher_dist.config_presets import make_config, small_world
 from higher_dist.learning.agent import AgentBuilder, Cadence, GeneratorPace, Seeds, train_generator
-from higher_dist.learning.learner_core import LearnerCore
+from higher_dist.learning.learner import Learner
 from higher_dist.learning.rate_limiter import SamplesPerInsertLimiter
-from higher_dist.learning.samples import real_episodes
+from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.world import language
 from higher_dist.world.grid import BatchedFetchAttr
 from higher_dist.world.spec import (DEFAULT_SPEC, N_ACTIONS, OUTCOME_NAMES, SUCCESS, TIMEOUT, VIEW_CHANNEL_VALUES,
@@ -54,11 +54,11 @@ def test_every_cell_the_world_shows_is_allowed_by_its_spec():
 
 def test_networks_replay_and_generator_read_the_spec():
     cfg = make_config("higher", "small", **{"world.view_size": 5})
-    core = LearnerCore(cfg)
+    core = Learner(cfg)
     assert core.replay.view_size == 5 and core.replay.mission_len == core.spec.mission_len
     assert core.dqn.online.view.view_size == 5
     assert core.dqn.online.text.embed.num_embeddings == core.spec.vocab_size
-    strategy = AgentBuilder(cfg).relabeler()
+    strategy = AgentBuilder(cfg).relabel_strategy()
     assert strategy.trainer.model.view_size == 5
     assert strategy.trainer.dataset.views.shape[1:] == (5, 5, 4)
 
@@ -137,9 +137,9 @@ def test_limiter_tolerance_blocks_each_side_only_past_the_slack():
     assert lim.can_sample(150, 0) is False and lim.ratio == pytest.approx(160 / 150)
 
 
-def test_learner_core_counts_original_and_relabelled_episodes_apart():
+def test_the_learner_counts_original_and_relabelled_episodes_apart():
     cfg = make_config("her", "small", **{"replay.min_size": 50})
-    core = LearnerCore(cfg)
+    core = Learner(cfg)
     episodes = real_episodes(cfg.world, 12, seed=1, relabelled=True)
     core.add_episodes(episodes)
     originals = [ep for ep in episodes if not ep.relabelled]

@@ -6,8 +6,8 @@ import torch
 from higher_dist.config import ConfigError
 from higher_dist.config_presets import make_config
 from higher_dist.learning.acting import EpisodeCollector
-from higher_dist.learning.learner_core import LearnerCore
-from higher_dist.learning.hindsight.relabel import make_relabeler
+from higher_dist.learning.learner import Learner
+from higher_dist.learning.hindsight.relabel import make_relabel_strategy
 
 
 def feed(preset, episodes, **overrides):
@@ -15,8 +15,8 @@ def feed(preset, episodes, **overrides):
     train as far as the ratio allows; returns (updates, env frames, relabelled copies)."""
     torch.set_num_threads(1)
     cfg = make_config(preset, "small", **{"replay.min_size": 200, "dqn.batch_size": 32, **overrides})
-    core = LearnerCore(cfg)
-    relabeler = make_relabeler(cfg, seed=0)
+    core = Learner(cfg)
+    relabeler = make_relabel_strategy(cfg, seed=0)
     for i in range(0, len(episodes), 16):
         batch = episodes[i:i + 16]
         core.add_episodes(batch + relabeler.relabel(batch))

@@ -10,7 +10,7 @@ from dataclasses import replace
 from higher_dist.config import WorldConfig, from_dict
 from higher_dist.config_presets import make_config
 from higher_dist.learning.episode import Episode
-from higher_dist.learning.samples import real_episodes
+from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.wire import (MESSAGE_TYPES, PROTOCOL_VERSION, SPECS, WireError, decode, decode_weights, encode,
                               encode_weights, pack_episodes, unpack_episodes)
 from higher_dist.wire.codec import MAGIC

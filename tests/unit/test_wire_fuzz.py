@@ -15,7 +15,7 @@ from dataclasses import replace
 
 from higher_dist.config import WorldConfig
 from higher_dist.learning.episode import Episode
-from higher_dist.learning.samples import real_episodes
+from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.world.spec import MAX_ACTIONS, MAX_CHANNEL_VALUES, WorldSpec
 from higher_dist.wire import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, WireError, decode, encode, encode_weights,
                               pack_episodes, unpack_episodes)

@@ -250,7 +250,7 @@ class LearnedRelabel(RelabelStrategy):
         self._steps_since_eval = int(state["steps_since_eval"])
 
 
-def make_relabeler(cfg: Config, seed: int | RelabelerSeeds, space: ObjectSpace | None = None) -> RelabelStrategy:
+def make_relabel_strategy(cfg: Config, seed: int | RelabelerSeeds, space: ObjectSpace | None = None) -> RelabelStrategy:
     """The relabel strategy of a run config (cfg.relabel, cfg.generator, cfg.world), drawing from the
     relabeler's streams `seed` (Seeds.relabeler; an int stands for the streams of that run seed)."""
     kind = cfg.relabel.strategy

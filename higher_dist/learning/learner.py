@@ -11,7 +11,7 @@ import numpy as np
 from higher_dist import metrics as m
 from higher_dist.config import Config
 from higher_dist.learning.compiled_loss import TRACING_GATE
-from higher_dist.learning.dqn import DQNLearner, learning_rate_at
+from higher_dist.learning.dqn import DQNUpdater, learning_rate_at
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.rate_limiter import SamplesPerInsertLimiter
 from higher_dist.learning.replay import PrioritizedReplay
@@ -19,14 +19,14 @@ from higher_dist.learning.seeds import Seeds
 from higher_dist.world.spec import WorldSpec
 
 
-class LearnerCore:
+class Learner:
     def __init__(self, cfg: Config, device: str | None = None):
         self.cfg = cfg
         self.spec = WorldSpec.of(cfg.world)
         seeds = Seeds(cfg.seed)
         self.replay = PrioritizedReplay(cfg.replay, frame_stack=cfg.network.frame_stack, n_step=cfg.dqn.n_step,
                                         gamma=cfg.dqn.gamma, spec=self.spec, seed=seeds.learner_replay)
-        self.dqn = DQNLearner(cfg.network, cfg.dqn, device=device or cfg.device, spec=self.spec,
+        self.dqn = DQNUpdater(cfg.network, cfg.dqn, device=device or cfg.device, spec=self.spec,
                               seed=seeds.learner_init)
         self.limiter = SamplesPerInsertLimiter(cfg.replay.samples_per_insert, cfg.replay.min_size)
         self.frames = 0  # env frames the actors reported (original episodes only)
