@@ -308,13 +308,11 @@ def main(argv: list[str] | None = None) -> int:
 
 def bench_config(overrides: list[str]):
     """The paper-world `higher` config every row runs, with `--set FIELD=VALUE` overrides (validated)."""
-    from higher_dist.config import from_dict, override
     from higher_dist.config_flags import explicit_overrides
     from higher_dist.config_presets import make_config
 
-    pairs = explicit_overrides(argparse.Namespace(set=overrides))
-    cfg = override(make_config("higher", "paper"), **pairs)
-    return from_dict(cfg.to_dict())  # the declared types (tuples) and validation, as a run gets them
+    # make_config applies the overrides, then the declared types and validation, as a run gets them.
+    return make_config("higher", "paper", **explicit_overrides(argparse.Namespace(set=overrides)))
 
 
 def _network_shape(args, sizes: list[int]) -> int:

@@ -38,7 +38,7 @@ from higher_dist.config import Config
 from higher_dist.launch.channels import check_binds, open_channel
 from higher_dist.launch.layout import available_cores, learner_alone
 from higher_dist.launch.topology import Endpoints
-from higher_dist.learning.agent import AgentBuilder, Seeds
+from higher_dist.learning.agent import AgentBuilder
 from higher_dist.learning.devices import resolve_device
 from higher_dist.roles.control_server import ControlServer
 from higher_dist.roles.evaluator import BackgroundEvaluator
@@ -62,7 +62,6 @@ class LearnerService:
         threads = threads or learner_alone(available_cores(), str(resolve_device(cfg.device)), cfg.torch_threads)
         torch.set_num_threads(threads)
         self.layout = layout or f"learner alone: {threads} thread{'s' if threads != 1 else ''}"
-        torch.manual_seed(Seeds(cfg.seed).learner_torch)
         self.cfg, self.endpoints = cfg, endpoints
         # Without keys, every port bound beyond loopback is named at once, before anything is written:
         # refused, or warned about under --insecure.
@@ -70,6 +69,7 @@ class LearnerService:
         check_binds(endpoints, bind_host, self.security, binder="learner")
         self.rd = RunDir(run_dir, tensorboard=cfg.tensorboard)
         self.agent = AgentBuilder(cfg)
+        torch.manual_seed(self.agent.seeds.learner_torch)  # this process's RNG, as the runner seeds it
         self.core = self.agent.learner()
         self.evaluator = BackgroundEvaluator(self.agent)
         self.registry = RoleRegistry(dead_after_s=cfg.role_grace_s)
