@@ -19,6 +19,8 @@ SIZES = ("tiny", "small", "medium", "large", "giant")
 
 PRESETS = ("dqn", "her", "noisy-her", "higher", "reward")  # the paper's methods (config_presets.py)
 WORLDS = ("paper", "small")  # our own worlds; a BabyAI pickup level is named by its gymnasium id
+# Distinct achieved outcomes one episode records at most (world/spec.py: the first and MAX_LATER more).
+MAX_OUTCOMES = 8
 BABYAI_PREFIX = "BabyAI-"
 
 
@@ -148,6 +150,9 @@ class GeneratorConfig:
 class RelabelConfig:
     strategy: str = "none"  # wrong picks relabelled by: none | expert | noisy | learned
     noise_p: float = 0.2  # noisy expert: each attribute swapped to another value with this probability
+    # Relabelled copies of one failed episode, at most: one per distinct outcome it achieved (BabyAI levels
+    # record several; a FetchAttr episode has one). More outcomes than this: a random choice of them.
+    max_per_episode: int = 4
 
 
 @dataclass(frozen=True)
@@ -336,6 +341,9 @@ def validate(cfg: Config) -> None:
     _check(g.eval_every_updates >= 1, f"generator.eval_every_updates: must be >= 1, got {g.eval_every_updates}")
     rl = cfg.relabel
     _check(0 <= rl.noise_p <= 1, f"relabel.noise_p: must be in [0, 1], got {rl.noise_p}")
+    _check(isinstance(rl.max_per_episode, numbers.Integral) and not isinstance(rl.max_per_episode, bool)
+           and 1 <= rl.max_per_episode <= MAX_OUTCOMES,
+           f"relabel.max_per_episode: must be an integer in [1, {MAX_OUTCOMES}], got {rl.max_per_episode!r}")
     _check(cfg.actors >= 1, f"actors: must be >= 1, got {cfg.actors}")
     _check(cfg.envs_per_actor >= 1, f"envs_per_actor: must be >= 1, got {cfg.envs_per_actor}")
     _check(cfg.frames >= 1, f"frames: must be >= 1, got {cfg.frames}")

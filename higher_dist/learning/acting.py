@@ -77,6 +77,8 @@ class EpisodeCollector:
             outcome=int(res.outcome[i]), picked=res.picked[i].astype(np.int8),
             goal=res.goal[i].astype(np.int8), pick_step=int(res.pick_step[i]), actor_id=self.actor_id,
             weights_version=self.weights_version,
+            later_achieved=None if res.later_achieved is None else res.later_achieved[i].copy(),
+            later_step=None if res.later_step is None else res.later_step[i].copy(),
         )
 
 

@@ -1,10 +1,14 @@
 """The unit of experience that flows actor -> relabeler -> learner: one finished episode.
 
 An episode of T actions keeps T+1 frames: the view before each action plus the view reached by the
-last one. The last frame is what a truncated episode bootstraps from. `pick_step` is the step whose
-action picked the object hindsight describes: on FetchAttr a pick ends the episode (T-1); on a BabyAI
-level the agent may pick, carry and drop, and it is the episode's first pick. The frame before that
-pick (`frames[pick_step]`) is what the instruction generator describes.
+last one. The last frame is what a truncated episode bootstraps from.
+
+Achieved outcomes are what hindsight describes. On FetchAttr a pick ends the episode: its one outcome is
+that pick (step T-1). On a BabyAI level the agent goes on after reaching an object, opening a door or
+picking an object up (the level's kind says which counts), so an episode records each distinct outcome
+the level's verifier accepted, in order: the first in `picked` / `pick_step`, up to `MAX_LATER` more in
+`later_achieved` / `later_step`. The frame that shows an outcome (`WorldSpec.outcome_view_offset`) is what
+the instruction generator describes.
 """
 from __future__ import annotations
 
@@ -12,7 +16,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from higher_dist.world.spec import OUTCOME_NAMES, SUCCESS, TIMEOUT, WRONG_PICK  # noqa: F401  (owned by world/)
+from higher_dist.world.spec import MAX_LATER, OUTCOME_NAMES, SUCCESS, TIMEOUT, WRONG_PICK  # noqa: F401  (world/'s)
+
+
+def no_later_outcomes() -> tuple[np.ndarray, np.ndarray]:
+    """(later_achieved (MAX_LATER, 4) int8, later_step (MAX_LATER,) int32) recording nothing."""
+    return np.full((MAX_LATER, 4), -1, np.int8), np.full(MAX_LATER, -1, np.int32)
 
 
 @dataclass
@@ -31,11 +40,26 @@ class Episode:
     relabelled: bool = False
     actor_id: int = 0
     weights_version: int = 0
+    # Outcomes after the first, in order of their steps, -1 rows and steps past the last; None: none.
+    later_achieved: np.ndarray | None = None  # (MAX_LATER, 4) int8, ground truth like `picked`
+    later_step: np.ndarray | None = None  # (MAX_LATER,) int32
 
     def __post_init__(self) -> None:
         if self.pick_step is None:
             self.pick_step = self.length - 1 if self.outcome != TIMEOUT else -1
         self.pick_step = int(self.pick_step)
+        if self.later_achieved is None or self.later_step is None:
+            self.later_achieved, self.later_step = no_later_outcomes()
+
+    @property
+    def n_outcomes(self) -> int:
+        """How many achieved outcomes the episode records."""
+        return int(self.pick_step >= 0) + int((self.later_step >= 0).sum())
+
+    def outcomes(self) -> list[tuple[int, np.ndarray]]:
+        """(step, attributes) of every recorded outcome, in order."""
+        found = [(self.pick_step, self.picked)] if self.pick_step >= 0 else []
+        return found + [(int(s), self.later_achieved[k]) for k, s in enumerate(self.later_step) if s >= 0]
 
     @property
     def length(self) -> int:
@@ -50,15 +74,20 @@ class Episode:
     def origin(self) -> str:
         return "relabelled" if self.relabelled else OUTCOME_NAMES[self.outcome]
 
-    def relabel(self, mission: np.ndarray, reward: float = 1.0) -> "Episode":
-        """A copy that claims `mission` was the goal: it ends at the pick (`pick_step`), which becomes a
-        success with `reward` (the world's reward for a success on that step: WorldSpec.pick_reward).
-        The copy is terminal (outcome WRONG_PICK, the pick ended it); steps after the pick are not in it."""
-        if self.pick_step < 0:
-            raise ValueError("Episode.relabel: nothing was picked, there is nothing to describe")
-        end = self.pick_step + 1
+    def relabel(self, mission: np.ndarray, reward: float = 1.0, outcome: int = 0) -> "Episode":
+        """A copy that claims `mission` was the goal: it ends at achieved outcome number `outcome` (0: the
+        first, `pick_step`), which becomes a success with `reward` (the world's reward for a success on that
+        step: WorldSpec.pick_reward). The copy is terminal (outcome WRONG_PICK, the achievement ended it);
+        steps after it are not in it, and it records that one outcome only."""
+        found = self.outcomes()
+        if not 0 <= outcome < len(found):
+            raise ValueError(f"Episode.relabel: outcome {outcome} of an episode that records {len(found)}")
+        step, attrs = found[outcome]
+        end = step + 1
         rewards = np.zeros(end, dtype=np.float32)
         rewards[-1] = reward
+        later_achieved, later_step = no_later_outcomes()
         return replace(self, frames=self.frames[: end + 1], actions=self.actions[:end], rewards=rewards,
                        mission=np.asarray(mission, dtype=np.int64).copy(), outcome=WRONG_PICK,
-                       relabelled=True)
+                       picked=np.asarray(attrs, np.int8).copy(), pick_step=step, relabelled=True,
+                       later_achieved=later_achieved, later_step=later_step)

@@ -5,6 +5,7 @@ One `episodes` message carries N episodes as:
     actions (S,) uint8, rewards (S,) float32   every episode's T steps (S = sum(T))
     lengths (N,) int32            T of each episode
     mission (N, L) int64, outcome (N,) uint8, picked (N, 4) int8, goal (N, 4) int8, pick_step (N,) int32,
+    later_achieved (N, MAX_LATER, 4) int8, later_step (N, MAX_LATER) int32,
     relabelled (N,) uint8, actor_id (N,) int32, weights_version (N,) int64
 Concatenation keeps the frame count independent of N (11 frames per batch however many episodes) and lets
 the codec scan each kind of value once per batch.
@@ -61,6 +62,8 @@ def pack_episodes(episodes: Sequence[Episode]) -> tuple[dict[str, Any], dict[str
         "picked": np.stack([ep.picked for ep in episodes]).astype(np.int8, copy=False),
         "goal": np.stack([ep.goal for ep in episodes]).astype(np.int8, copy=False),
         "pick_step": np.array([ep.pick_step for ep in episodes], dtype=np.int32),
+        "later_achieved": np.stack([ep.later_achieved for ep in episodes]).astype(np.int8, copy=False),
+        "later_step": np.stack([ep.later_step for ep in episodes]).astype(np.int32, copy=False),
         "relabelled": np.array([ep.relabelled for ep in episodes], dtype=np.uint8),
         "actor_id": np.array([ep.actor_id for ep in episodes], dtype=np.int32),
         "weights_version": np.array([ep.weights_version for ep in episodes], dtype=np.int64),
@@ -107,6 +110,7 @@ def unpack_episodes(msg: Message, spec: WorldSpec, *, reject=None, allow_relabel
                 rewards=rewards[step_start:step_start + length].copy(),
                 mission=mission[i].copy(), outcome=int(a["outcome"][i]), picked=a["picked"][i].copy(),
                 goal=a["goal"][i].copy(), pick_step=int(a["pick_step"][i]), relabelled=bool(a["relabelled"][i]),
+                later_achieved=a["later_achieved"][i].copy(), later_step=a["later_step"][i].copy(),
                 actor_id=int(a["actor_id"][i]),
                 weights_version=int(a["weights_version"][i]),
             ))
@@ -139,6 +143,7 @@ def _episode_faults(a: dict, spec: WorldSpec, allow_relabelled: bool, n_actors: 
         return allowed_attr[cols, np.clip(x, -1, allowed_attr.shape[1] - 2) + 1] | (x == -1)
 
     flag(~(value_ok(a["goal"].astype(np.int64)) & value_ok(a["picked"].astype(np.int64))).all(axis=1), "attribute")
+    flag(~value_ok(a["later_achieved"].astype(np.int64)).all(axis=(1, 2)), "attribute")
     allowed_cell = spec.cell_allowed()
     frames = a["frames"]
     cell_ok = np.ones(frames.shape[:-1], dtype=bool)

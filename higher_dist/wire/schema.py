@@ -81,6 +81,7 @@ MAX_TOKEN = 1023
 
 # The largest values any world family sends; the run's own WorldSpec is checked by unpack_episodes.
 VIEW_CHANNEL_MAX = tuple(n - 1 for n in world_spec.MAX_CHANNEL_VALUES)
+MAX_LATER = world_spec.MAX_LATER
 ATTR_MAX = tuple(n - 1 for n in world_spec.MAX_ATTR_VALUES)  # attribute indices; -1 = none
 N_ACTIONS = world_spec.MAX_ACTIONS
 N_OUTCOMES = world_spec.N_OUTCOMES
@@ -203,6 +204,8 @@ _SPECS: tuple[MessageSpec, ...] = (
         Array("picked", "int8", (_N, exact(4)), -1, ATTR_MAX),
         Array("goal", "int8", (_N, exact(4)), -1, ATTR_MAX),
         Array("pick_step", "int32", (_N,), -1, MAX_STEPS - 1),
+        Array("later_achieved", "int8", (_N, exact(MAX_LATER), exact(4)), -1, ATTR_MAX),
+        Array("later_step", "int32", (_N, exact(MAX_LATER)), -1, MAX_STEPS - 1),
         Array("relabelled", "uint8", (_N,), 0, 1),
         Array("actor_id", "int32", (_N,), 0, MAX_ID),
         Array("weights_version", "int64", (_N,), 0, MAX_COUNTER),

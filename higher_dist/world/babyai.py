@@ -1,8 +1,8 @@
-"""BabyAI's pickup levels (Farama Minigrid) behind the batched interface of `BatchedFetchAttr`.
+"""BabyAI's single-instruction levels (Farama Minigrid) behind the batched interface of `BatchedFetchAttr`.
 
 A batch is B unwrapped minigrid envs stepped one after the other; what this module adds is the
-batch's arrays, auto-reset, the episode bookkeeping hindsight needs (the first object picked up and
-when) and the translation of missions into `babyai_language` word ids.
+batch's arrays, auto-reset, the episode bookkeeping hindsight needs (every distinct outcome the agent
+achieved, and when) and the translation of missions into `babyai_language` word ids.
 
 Views. Minigrid's image is (V, V, 3) indexed [x, y]; ours are (V, V, 4) uint8 indexed [row, col,
 channel], so a BabyAI view is the image transposed plus a 4th channel that is always 0: the same
@@ -10,11 +10,19 @@ layout as FetchAttr's views. Channels: minigrid's object index (0..10), colour i
 state (0..2). The agent is at row V-1, column V//2, facing up; while it carries an object, minigrid
 draws that object in the agent's own cell.
 
-Episodes. Outside strict mode a wrong pickup does not end a BabyAI episode: the agent carries the
-object on, may drop it and pick up another. An episode ends on the mission's pickup (terminated,
-outcome SUCCESS, reward 1 - 0.9 * steps / max_steps) or at the level's step limit (truncated,
-outcome TIMEOUT). A step that does both counts as a success only. `picked` / `pick_step` report the
-first pickup of the episode (the one hindsight describes).
+Episodes. Outside strict mode reaching, opening or picking the wrong object does not end a BabyAI
+episode: the agent goes on. An episode ends when the level's own verifier accepts its mission
+(terminated, outcome SUCCESS, reward 1 - 0.9 * steps / max_steps) or at the level's step limit
+(truncated, outcome TIMEOUT). A step that does both counts as a success only.
+
+Achieved outcomes. What counts is what the level counts: at each reset the env gets one of minigrid's
+own verifiers (the level's kind: `PickupInstr`, `GoToInstr` or `OpenInstr`) per distinct (colour, type)
+of the objects its instructions may name, reset as the level resets its own, and stepped as the level
+steps its own (object positions refreshed after a drop). The first step a verifier accepts is an outcome,
+described "VERB the|a COLOR TYPE": the article is the one the level would use (several objects match: "a").
+A go-to is recorded only while the object is in front: minigrid also accepts facing the cell where an
+object lay before the agent picked it up, which no view shows. `picked` / `pick_step` report the first
+outcome, `later_achieved` / `later_step` up to MAX_LATER more.
 
 Seeds. Env i is reset the first time with the seed `default_rng([seed, i]).integers(2**63 - 1)`
 (or `default_rng(env_seeds[i])...`) and afterwards without one, continuing its own generator: env i
@@ -31,18 +39,63 @@ import numpy as np
 
 from higher_dist.world import babyai_language as lang
 from higher_dist.world.grid import StepResult, check_actions
-from higher_dist.world.babyai_levels import LevelFacts, _quiet, is_pickup_level, level_facts, pickup_levels  # noqa: F401
-from higher_dist.world.spec import BABYAI_ACTION_NAMES, BABYAI_CHANNEL_VALUES, RUNNING, SUCCESS, TIMEOUT
+from minigrid.envs.babyai.core.verifier import GoToInstr, ObjDesc, OpenInstr, PickupInstr
+
+from higher_dist.world.babyai_levels import (LevelFacts, _quiet, is_pickup_level, level_facts,  # noqa: F401
+                                             pickup_levels, supported_levels)
+from higher_dist.world.spec import (BABYAI_ACTION_NAMES, BABYAI_CHANNEL_VALUES, MAX_LATER, MAX_OUTCOMES, RUNNING,
+                                    SUCCESS, TIMEOUT)
 
 N_BABYAI_ACTIONS = len(BABYAI_ACTION_NAMES)
 ACTION_PICKUP = BABYAI_ACTION_NAMES.index("pickup")
+ACTION_DROP = BABYAI_ACTION_NAMES.index("drop")
+_VERIFIERS = {"pickup": PickupInstr, "goto": GoToInstr, "open": OpenInstr}
 CHANNEL_VALUES = BABYAI_CHANNEL_VALUES  # distinct values per view channel: object, colour, state, unused
 _COLOR_INDEX = {c: i for i, c in enumerate(lang.COLORS)}
 _TYPE_INDEX = {t: i for i, t in enumerate(lang.TYPES)}
 
 
+class OutcomeWatch:
+    """One episode's achieved outcomes on one env, judged by the level's own verifier class."""
+
+    def __init__(self, env, kind: str, language: lang.BabyAILanguage):
+        self.kind, self.found = kind, []  # found: (step, (colour, type, -1, plural)) in order
+        names = {lang.TYPES[t] for t in language.types}
+        descriptions = dict.fromkeys((cell.color, cell.type) for cell in env.grid.grid
+                                     if cell is not None and cell.type in names)
+        self.pending = []
+        for color, type_ in descriptions:
+            verifier = _VERIFIERS[kind](ObjDesc(type_, color))
+            verifier.reset_verifier(env)
+            attrs = (_COLOR_INDEX[color], _TYPE_INDEX[type_], -1, int(len(verifier.desc.obj_set) > 1))
+            self.pending.append((verifier, attrs))
+
+    def step(self, env, action: int, step: int) -> bool:
+        """Judge the step just taken (index `step` of the episode); True when it achieved something new."""
+        if action == ACTION_DROP:  # as the level does for its own verifier: objects may have moved
+            for verifier, _ in self.pending:
+                verifier.update_objs_poss()
+        new, still = False, []
+        for verifier, attrs in self.pending:
+            if verifier.verify(action) == "success" and self._shown(env, attrs):
+                if len(self.found) < MAX_OUTCOMES:
+                    self.found.append((step, attrs))
+                    new = True
+            else:
+                still.append((verifier, attrs))
+        self.pending = still
+        return new
+
+    def _shown(self, env, attrs) -> bool:
+        """A go-to counts only with the object in front (see the module's docstring)."""
+        if self.kind != "goto":
+            return True
+        cell = env.grid.get(*env.front_pos)
+        return cell is not None and (_COLOR_INDEX.get(cell.color), _TYPE_INDEX.get(cell.type)) == attrs[:2]
+
+
 class BatchedBabyAI:
-    """B envs of one BabyAI pickup level stepped together; finished ones are reset in place by `step`.
+    """B envs of one supported BabyAI level stepped together; finished ones are reset in place by `step`.
 
     Arrays handed out (views, missions, goals, picks) are never written to afterwards: state arrays
     are replaced, not edited, so callers may keep them without copying.
@@ -56,6 +109,7 @@ class BatchedBabyAI:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise ValueError(f"{name}: must be an integer >= 1, got {value!r}")
         self.facts = level_facts(level_id)
+        self.language = lang.LANGUAGES[self.facts.kind]
         self.level_id, self.batch_size = level_id, int(batch_size)
         self.view_size = self.facts.view_size
         self.max_steps = self.facts.max_steps if max_steps is None else int(max_steps)
@@ -70,6 +124,9 @@ class BatchedBabyAI:
         self._goal = np.full((b, 4), -1, dtype=np.int8)
         self._picked = np.full((b, 4), -1, dtype=np.int8)
         self._pick_step = np.full(b, -1, dtype=np.int32)
+        self._later = np.full((b, MAX_LATER, 4), -1, dtype=np.int8)
+        self._later_step = np.full((b, MAX_LATER), -1, dtype=np.int32)
+        self._watches: list[OutcomeWatch | None] = [None] * b
         self._missions_seen: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._started = False
 
@@ -139,16 +196,16 @@ class BatchedBabyAI:
                 tokens = lang.encode(text)
             except ValueError as error:
                 raise ValueError(f"level {self.level_id}: mission {text!r} does not encode: {error}") from None
-            goal = lang.parse(tokens)
+            goal = self.language.parse(tokens)
             if goal is None:
-                raise ValueError(f"level {self.level_id}: mission {text!r} is not a pickup sentence")
+                raise ValueError(f"level {self.level_id}: mission {text!r} is not a {self.facts.kind} sentence")
             known = self._missions_seen[text] = (tokens, goal)
         return known
 
     def _reset_envs(self, envs) -> None:
         """New episodes for `envs` (indices); replaces the per-episode state arrays."""
         self._mission, self._goal = self._mission.copy(), self._goal.copy()
-        self._picked, self._pick_step = self._picked.copy(), self._pick_step.copy()
+        self._copy_outcomes()
         with _quiet():
             for i in envs:
                 env, seed = self._envs[i], self._first_seeds[i]
@@ -156,24 +213,30 @@ class BatchedBabyAI:
                 obs, _ = env.reset(seed=seed)
                 self._images[i] = obs["image"]
                 self._mission[i], self._goal[i] = self._encode_mission(env.mission)
+                self._watches[i] = OutcomeWatch(env, self.facts.kind, self.language)
         envs = list(envs)
         self._steps[envs] = 0
         self._picked[envs] = -1
         self._pick_step[envs] = -1
+        self._later[envs] = -1
+        self._later_step[envs] = -1
+
+    def _copy_outcomes(self) -> None:
+        """Fresh outcome arrays before editing them: the ones handed out stay as they were."""
+        self._picked, self._pick_step = self._picked.copy(), self._pick_step.copy()
+        self._later, self._later_step = self._later.copy(), self._later_step.copy()
+
+    def _record(self, i: int) -> None:
+        """Write env i's outcomes into the (already copied) outcome arrays."""
+        found = self._watches[i].found
+        self._pick_step[i], self._picked[i] = found[0]
+        for k, (step, attrs) in enumerate(found[1:]):
+            self._later_step[i, k], self._later[i, k] = step, attrs
 
     # ------------------------------------------------------------------------------------ stepping
 
     def _check_actions(self, actions) -> np.ndarray:
         return check_actions(actions, self.batch_size, BABYAI_ACTION_NAMES)
-
-    @staticmethod
-    def _pick_attrs(env) -> tuple[int, int, int, int]:
-        """(color, type, -1, plural) of the object `env` just picked up. Plural: another object in
-        the level has its colour and type, so the level itself would say "a", not "the"."""
-        obj = env.carrying
-        twins = sum(1 for cell in env.grid.grid
-                    if cell is not None and cell.type == obj.type and cell.color == obj.color)
-        return _COLOR_INDEX[obj.color], _TYPE_INDEX[obj.type], -1, int(twins > 0)
 
     def step(self, actions) -> StepResult:
         """Apply one action per env; finished envs start a new episode in place (see StepResult)."""
@@ -181,17 +244,16 @@ class BatchedBabyAI:
             raise RuntimeError("BatchedBabyAI.step: call reset() first")
         acts = self._check_actions(actions).tolist()
         images, envs, steps = self._images, self._envs, self._steps
-        rewards, ended, dirs, picks = [], [], [], []
+        rewards, ended, dirs, achieved = [], [], [], []
         for i, env in enumerate(envs):
-            empty_handed = env.carrying is None
             obs, reward, terminated, truncated, _ = env.step(acts[i])
             images[i] = obs["image"]
             rewards.append(reward)
             dirs.append(env.agent_dir)
             if terminated or truncated:
                 ended.append((i, bool(terminated)))
-            if empty_handed and env.carrying is not None:
-                picks.append(i)
+            if self._watches[i].step(env, acts[i], int(steps[i])):
+                achieved.append(i)
         steps += 1
         b = self.batch_size
         reward = np.array(rewards, dtype=np.float32)
@@ -200,15 +262,13 @@ class BatchedBabyAI:
         for i, success in ended:
             (terminated if success else truncated)[i] = True
             outcome[i] = SUCCESS if success else TIMEOUT
-        firsts = [i for i in picks if self._pick_step[i] < 0]
-        if firsts:
-            self._picked, self._pick_step = self._picked.copy(), self._pick_step.copy()
-            for i in firsts:
-                self._picked[i] = self._pick_attrs(envs[i])
-                self._pick_step[i] = steps[i] - 1
+        if achieved:
+            self._copy_outcomes()
+            for i in achieved:
+                self._record(i)
         final_view = self._to_views(images)
         length, goal, mission_done = steps.copy(), self._goal, self._mission
-        picked, pick_step = self._picked, self._pick_step
+        picked, pick_step, later, later_step = self._picked, self._pick_step, self._later, self._later_step
         view = final_view
         if ended:
             finished = [i for i, _ in ended]
@@ -218,4 +278,5 @@ class BatchedBabyAI:
         return StepResult(view=view, mission=self._mission, reward=reward, terminated=terminated,
                           truncated=truncated, final_view=final_view, outcome=outcome, length=length,
                           picked=picked, goal=goal, mission_done=mission_done,
-                          final_dir=np.array(dirs, dtype=np.int64), pick_step=pick_step)
+                          final_dir=np.array(dirs, dtype=np.int64), pick_step=pick_step,
+                          later_achieved=later, later_step=later_step)

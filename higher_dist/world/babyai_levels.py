@@ -1,5 +1,6 @@
-"""Which BabyAI levels are pickup levels, and the facts of a level (view, step limit, locations) that
-the world spec needs before any environment runs. Kept apart from the batched adapter (world/babyai.py)
+"""Which BabyAI levels are supported (every episode one non-strict pickup, go-to or open instruction: the
+level's `kind`), and the facts of a level (kind, view, step limit, locations) that the world spec needs
+before any environment runs. Kept apart from the batched adapter (world/babyai.py)
 so that world/spec.py can read a level's facts without importing the adapter.
 """
 from __future__ import annotations
@@ -11,9 +12,15 @@ from functools import lru_cache
 
 import gymnasium as gym
 import minigrid  # noqa: F401  (registers the BabyAI-* ids with gymnasium)
-from minigrid.envs.babyai.core.verifier import PickupInstr
+from minigrid.envs.babyai.core.verifier import GoToInstr, OpenInstr, PickupInstr
 
 _PROBE_SEED = 0
+# A level that is not a level generator draws its instruction in code; more seeds confirm that every
+# episode has the first one's kind (BabyAI-ActionObjDoor-v0 mixes go-to, pickup and open missions).
+_CONFIRM_SEEDS = range(1, 25)
+_KIND_OF_INSTR = {PickupInstr: "pickup", GoToInstr: "goto", OpenInstr: "open"}
+_LEVELGEN_KIND = {"pickup": "pickup", "goto": "goto", "open": "open"}  # LevelGen's action_kinds names
+SUPPORTED = "levels whose every mission is one non-strict 'pick up', 'go to' or 'open' instruction"
 
 
 @contextlib.contextmanager
@@ -23,46 +30,81 @@ def _quiet():
         yield
 
 
-def _probe(level_id: str):
-    """A fresh unwrapped env of `level_id`, reset once with a fixed seed."""
+def _probe(level_id: str, seed: int = _PROBE_SEED):
+    """A fresh unwrapped env of `level_id`, reset once with `seed`."""
     env = gym.make(level_id).unwrapped
     with _quiet():
-        env.reset(seed=_PROBE_SEED)
+        env.reset(seed=seed)
     return env
 
 
-def _only_pickup_missions(env) -> bool:
-    """Whether every episode of this level is a lone, non-strict pickup.
-
-    A level generator (LevelGen) draws its instruction kinds per episode, so one seed's mission says
-    nothing about the next: require its kinds to be pickup actions only. Strict levels (the *Debug
-    variants) end the episode on a wrong pickup, which the episode model above does not have."""
+def _instr_kind(env) -> str | None:
+    """The kind of the env's current instruction: one non-strict pickup, go-to or open, else None
+    (sequences, PutNext, strict variants that end an episode on a wrong object)."""
     instrs = getattr(env, "instrs", None)
-    if type(instrs) is not PickupInstr or instrs.strict:
-        return False
-    if hasattr(env, "action_kinds"):
-        return set(env.action_kinds) == {"pickup"} and set(env.instr_kinds) == {"action"}
-    return True
+    kind = _KIND_OF_INSTR.get(type(instrs))
+    return None if kind is None or getattr(instrs, "strict", False) else kind
 
 
 @lru_cache(maxsize=None)
-def pickup_levels() -> tuple[str, ...]:
-    """The registered `BabyAI-*` ids whose missions are all non-strict "pick up ..." instructions."""
-    levels = []
+def _level_kind(level_id: str) -> str | None:
+    """The one kind of every episode of the level, None if its episodes are not all of one supported kind.
+
+    A level generator (LevelGen) draws its instruction kinds per episode, so one seed's mission says
+    nothing about the next: require its kinds to be one action only. Other levels are probed on more seeds."""
+    env = _probe(level_id)
+    kind = _instr_kind(env)
+    if kind is None:
+        return None
+    if hasattr(env, "action_kinds"):
+        ok = set(env.action_kinds) == {kind} and set(env.instr_kinds) == {"action"}
+        return kind if ok else None
+    with _quiet():
+        for seed in _CONFIRM_SEEDS:
+            env.reset(seed=seed)
+            if _instr_kind(env) != kind:
+                return None
+    return kind
+
+
+@lru_cache(maxsize=None)
+def _kinds() -> dict[str, str]:
+    kinds = {}
     for level_id in sorted(k for k in gym.registry if k.startswith("BabyAI-")):
-        if _only_pickup_missions(_probe(level_id)):
-            levels.append(level_id)
-    return tuple(levels)
+        kind = level_kind(level_id)
+        if kind is not None:
+            kinds[level_id] = kind
+    return kinds
+
+
+def supported_levels(kind: str | None = None) -> tuple[str, ...]:
+    """The registered `BabyAI-*` ids this system runs (of one `kind` if given), sorted."""
+    return tuple(level for level, k in _kinds().items() if kind is None or k == kind)
+
+
+def pickup_levels() -> tuple[str, ...]:
+    """The supported levels whose missions are all "pick up ..." instructions."""
+    return supported_levels("pickup")
+
+
+def level_kind(name: str) -> str | None:
+    """"pickup", "goto" or "open" for a supported level id, None for any other name."""
+    return _level_kind(name) if isinstance(name, str) and name.startswith("BabyAI-") and name in gym.registry else None
+
+
+def is_supported_level(name: str) -> bool:
+    return level_kind(name) is not None
 
 
 def is_pickup_level(name: str) -> bool:
-    return name in pickup_levels()
+    return level_kind(name) == "pickup"
 
 
 @dataclass(frozen=True)
 class LevelFacts:
     """What the rest of the system needs to know about a level before running it."""
     level_id: str
+    kind: str  # "pickup", "goto" or "open": the verb of every mission of the level
     view_size: int
     max_steps: int
     n_actions: int
@@ -74,12 +116,12 @@ class LevelFacts:
 
 @lru_cache(maxsize=None)
 def level_facts(level_id: str) -> LevelFacts:
-    if not is_pickup_level(level_id):
+    if not is_supported_level(level_id):
         known = "known" if level_id in gym.registry else "unknown"
-        raise ValueError(f"level {level_id!r} ({known} id) is not a BabyAI pickup level; "
-                         f"pickup levels: {', '.join(pickup_levels())}")
+        raise ValueError(f"level {level_id!r} ({known} id) is not supported: supported are {SUPPORTED} "
+                         f"({', '.join(supported_levels())})")
     env = _probe(level_id)
-    return LevelFacts(level_id=level_id, view_size=int(env.observation_space["image"].shape[0]),
+    return LevelFacts(level_id=level_id, kind=level_kind(level_id), view_size=int(env.observation_space["image"].shape[0]),
                       max_steps=int(env.max_steps), n_actions=int(env.action_space.n),
                       has_locations=bool(getattr(env, "locations", False)),
                       room_size=int(env.room_size), grid_width=int(env.width), grid_height=int(env.height))

@@ -2,11 +2,13 @@
 produced (or an honest relabelled copy of one), checked for a whole batch at once.
 
 The wire (wire/episodes.py) first checks shapes, types and the run's ranges, then asks `episode_faults`
-for the meaning. The rules every family shares live here (rewards before the last step are zero, the pick
-is a pick action on an object in front, a relabelled copy ends at its pick, a mission is a sentence naming
-the goal); what differs between families lives with each family and is reached through `family_rules`:
-`grid.FetchAttrEpisodes` (a pick ends the episode) and `babyai_episodes.BabyAIEpisodes` (a wrong pick
-goes on). Each rule's reason is one of `EPISODE_FAULTS`, the counter names the receiver drops under.
+for the meaning. The rules every family shares live here (rewards before the last step are zero; the
+achieved outcomes are distinct, in step order, each by the family's achieving action and shown by the
+views; a relabelled copy ends at its one outcome; a mission is a sentence naming the goal); what differs
+between families lives with each family and is reached through `family_rules`: `grid.FetchAttrEpisodes`
+(a pick ends the episode) and `babyai_episodes.BabyAIEpisodes` (a wrong outcome goes on; the level's kind
+says what an outcome is). Each rule's reason is one of `EPISODE_FAULTS`, the counter names the receiver
+drops under.
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ import numpy as np
 
 from higher_dist.world.babyai_episodes import BABYAI_EPISODES
 from higher_dist.world.grid import FETCHATTR_EPISODES
-from higher_dist.world.spec import WRONG_PICK, WorldSpec
+from higher_dist.world.spec import MAX_LATER, WRONG_PICK, WorldSpec
 
 # Why an episode means something its world cannot have produced (counter names, one per rule).
 EPISODE_FAULTS = (
@@ -26,7 +28,10 @@ EPISODE_FAULTS = (
     "outcome",  # outcome inconsistent with length, the pick's step and action, picked or goal
     "reward",  # rewards inconsistent with outcome (or the shaping rule)
     "picked_not_in_front",  # the picked object is not in the cell in front before the pick
-    "relabel_inconsistent",  # a relabelled copy that is not a wrong pick ending at its pick, or names its own goal
+    "reached_not_in_front",  # a go-to level's reached object is not in front after the step that reached it
+    "door_not_opened",  # an open level's door is not the one toggled, or not open after the toggle
+    "later_outcome",  # outcomes after the first: out of step order, repeated, unset mid-list, or more than the world has
+    "relabel_inconsistent",  # a relabelled copy that is not a wrong pick ending at its one outcome, or names its own goal
     "mission_grammar",  # not a sentence of the language (all-PAD, ungrammatical, an object this world lacks)
     "mission_goal",  # an original episode whose mission does not name its goal
 )
@@ -46,6 +51,8 @@ class EpisodeBatch:
     picked: np.ndarray  # (N, 4)
     goal: np.ndarray  # (N, 4)
     pick_step: np.ndarray  # (N,)
+    later_achieved: np.ndarray  # (N, MAX_LATER, 4)
+    later_step: np.ndarray  # (N, MAX_LATER)
     relabelled: np.ndarray  # (N,) bool
     starts: np.ndarray  # (N,) each episode's first step
     ends: np.ndarray  # (N,) one past each episode's last step
@@ -59,7 +66,8 @@ class EpisodeBatch:
         as64 = lambda name: arrays[name].astype(np.int64)  # noqa: E731
         return cls(frames=arrays["frames"], actions=arrays["actions"], rewards=arrays["rewards"], lengths=lengths,
                    mission=arrays["mission"], outcome=as64("outcome"), picked=as64("picked"), goal=as64("goal"),
-                   pick_step=as64("pick_step"), relabelled=arrays["relabelled"].astype(bool), starts=starts, ends=ends,
+                   pick_step=as64("pick_step"), later_achieved=as64("later_achieved"),
+                   later_step=as64("later_step"), relabelled=arrays["relabelled"].astype(bool), starts=starts, ends=ends,
                    frame_starts=starts + np.arange(len(lengths)))
 
     @property
@@ -81,13 +89,18 @@ class EpisodeBatch:
         """Per episode, the frame before its own step `step` (clipped into the episode)."""
         return self.at(self.frames, self.frame_starts + self._within(step))
 
+    def frame_after(self, step: np.ndarray) -> np.ndarray:
+        """Per episode, the frame its own step `step` reached (clipped into the episode)."""
+        return self.at(self.frames, self.frame_starts + self._within(step) + 1)
+
     def _within(self, step: np.ndarray) -> np.ndarray:
         return np.clip(step, 0, np.maximum(self.lengths - 1, 0))
 
 
 def family_rules(spec: WorldSpec):
-    """The rules of `spec`'s world family: an object with pick_action, picks, attributes_ok, cells_ok,
-    outcome_ok, reward and mission_ok (see grid.FetchAttrEpisodes). A success's reward on any family is
+    """The rules of `spec`'s world family: an object with achieve_action, not_shown_reason, picks,
+    outcome_attributes_ok, attributes_ok, cells_ok, shown, outcome_ok, reward and mission_ok (see
+    grid.FetchAttrEpisodes). A success's reward on any family is
     `spec.pick_reward`."""
     return BABYAI_EPISODES if spec.family == "babyai" else FETCHATTR_EPISODES
 
@@ -114,9 +127,12 @@ def episode_faults(spec: WorldSpec, arrays: Mapping[str, np.ndarray], reasons: l
     if cells is not None:
         frame_bad = ~cells.reshape(len(b.frames), -1).all(axis=1)
         flag(np.add.reduceat(frame_bad, b.frame_starts) > 0 if b.n else frame_bad[:0], "cell")
-    # Outcome versus length, the pick, the last action and the goal.
-    flag(picks & (b.action_at(b.pick_step) != rules.pick_action), "outcome")
+    # Outcome versus length, the first outcome's action, the last action and the goal.
+    action = rules.achieve_action(spec)
+    if action is not None:
+        flag(picks & (b.action_at(b.pick_step) != action), "outcome")
     flag(~rules.outcome_ok(spec, b, b.action_at(b.lengths - 1)), "outcome")
+    _later_outcome_faults(spec, rules, b, picks, flag)
     # Rewards: zero before the last step; the last is the family's reward for the episode, a relabelled
     # copy's that of a success on its last step.
     early = np.ones(b.rewards.shape[0], dtype=bool)
@@ -125,11 +141,15 @@ def episode_faults(spec: WorldSpec, arrays: Mapping[str, np.ndarray], reasons: l
     flag(np.bincount(step_episode[early & (b.rewards != 0)], minlength=b.n) > 0, "reward")
     expected = np.where(b.relabelled, spec.pick_reward(b.lengths), rules.reward(spec, b))
     flag(np.abs(b.at(b.rewards, b.ends - 1) - expected) > 1e-5, "reward")
-    # The picked object sits in the cell in front of the agent on the frame before the pick.
-    front = spec.front_object(b.frame_at(b.pick_step))
-    columns = spec.picked_columns
-    flag(picks & ~(front[:, :columns] == b.picked[:, :columns]).all(axis=1), "picked_not_in_front")
-    flag(b.relabelled & ((b.outcome != WRONG_PICK) | (b.pick_step != b.lengths - 1)), "relabel_inconsistent")
+    # Each outcome is shown by the views (the picked object in front before the pick, ...).
+    flag(picks & ~rules.shown(spec, b, b.pick_step, b.picked), rules.not_shown_reason(spec))
+    for k in range(MAX_LATER):
+        step = b.later_step[:, k]
+        flag((step >= 0) & ~rules.shown(spec, b, step, b.later_achieved[:, k]), rules.not_shown_reason(spec))
+    # A copy ends at its one outcome: nothing after it.
+    has_later = (b.later_step >= 0).any(axis=1)
+    flag(b.relabelled & ((b.outcome != WRONG_PICK) | (b.pick_step != b.lengths - 1) | has_later),
+         "relabel_inconsistent")
     # The grammar last: the only per-episode Python loop, skipped for episodes already dropped.
     parse = spec.language.parse
     for i in range(b.n):
@@ -142,3 +162,28 @@ def episode_faults(spec: WorldSpec, arrays: Mapping[str, np.ndarray], reasons: l
             reasons[i] = "relabel_inconsistent"  # it would store the failed goal as reached
         elif not b.relabelled[i] and not (named.astype(np.int64) == b.goal[i]).all():
             reasons[i] = "mission_goal"
+
+
+def _later_outcome_faults(spec: WorldSpec, rules, b: EpisodeBatch, picks: np.ndarray, flag) -> None:
+    """Outcomes after the first: set ones come first, in increasing steps after the first outcome and within
+    the episode, each by the achieving action, with attributes exactly where a step is set, no two with
+    one description (each is the first step a description was achieved), no more than the world records."""
+    step, attrs = b.later_step, b.later_achieved
+    n_later = (step >= 0).sum(axis=1)
+    prefix = (step >= 0) == (np.arange(MAX_LATER)[None, :] < n_later[:, None])
+    steps = np.concatenate([b.pick_step[:, None], step], axis=1)
+    rising = np.where(step >= 0, step > steps[:, :-1], True).all(axis=1)
+    flag(~prefix.all(axis=1) | ~rising | (step >= b.lengths[:, None]).any(axis=1) | ((n_later > 0) & ~picks)
+         | (n_later + 1 > spec.max_outcomes) & (n_later > 0), "later_outcome")
+    flat = attrs.reshape(-1, 4)
+    set_ok = rules.outcome_attributes_ok(spec, flat).reshape(step.shape)
+    unset_ok = (attrs == -1).all(axis=2)
+    flag(~np.where(step >= 0, set_ok, unset_ok).all(axis=1), "attribute")
+    action = rules.achieve_action(spec)
+    for k in range(MAX_LATER):
+        on = step[:, k] >= 0
+        if action is not None:
+            flag(on & (b.action_at(step[:, k]) != action), "later_outcome")
+        for j in range(k):  # the same description twice
+            flag(on & (attrs[:, j, :2] == attrs[:, k, :2]).all(axis=1), "later_outcome")
+        flag(on & (b.picked[:, :2] == attrs[:, k, :2]).all(axis=1), "later_outcome")

@@ -97,6 +97,9 @@ class StepResult:
     pick_step: np.ndarray  # (B,) int32: index of the step of the episode that picked `picked` (the
     #                        pick hindsight describes), -1 if none. FetchAttr: a pick ends the episode,
     #                        so it is length - 1 for picks; worlds where picks go on report the first.
+    # Outcomes after the first (BabyAI levels; None on FetchAttr, whose episodes have one).
+    later_achieved: np.ndarray | None = None  # (B, MAX_LATER, 4) int8, -1 rows for none
+    later_step: np.ndarray | None = None  # (B, MAX_LATER) int32, -1 for none
 
     @property
     def done(self) -> np.ndarray:
@@ -331,12 +334,29 @@ class FetchAttrEpisodes:
     """What a FetchAttr episode means (the family's part of world/episode_rules.py): a pick ends the
     episode, every object names all four attributes, and the reward is `pick_reward`'s."""
 
-    pick_action = ACTION_PICK
+    @staticmethod
+    def achieve_action(spec) -> int:
+        """The action that achieves an outcome: a pick."""
+        return ACTION_PICK
+
+    @staticmethod
+    def not_shown_reason(spec) -> str:
+        return "picked_not_in_front"
 
     @staticmethod
     def picks(spec, b) -> np.ndarray:
         """Which episodes picked: any that did not time out (their pick_step is checked with the outcome)."""
         return b.outcome != TIMEOUT
+
+    @staticmethod
+    def outcome_attributes_ok(spec, attrs) -> np.ndarray:
+        """A picked object names all four attributes."""
+        return (attrs >= 0).all(axis=1)
+
+    @staticmethod
+    def shown(spec, b, step, attrs) -> np.ndarray:
+        """Whether the picked object `attrs` sits in the cell in front on the frame before the pick."""
+        return (spec.front_object(b.frame_at(step)) == attrs).all(axis=1)
 
     @staticmethod
     def attributes_ok(spec, b, picks) -> np.ndarray:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from higher_dist.config import COLORS, SHADES, SIZES, TYPES, WorldConfig, is_babyai_world
+from higher_dist.config import COLORS, MAX_OUTCOMES, SHADES, SIZES, TYPES, WorldConfig, is_babyai_world
 from higher_dist.world import babyai_language, language
 
 # -- view cells: 4 channels [kind, color, shade, size] -------------------------------------------
@@ -54,6 +54,12 @@ BABYAI_CHANNEL_VALUES = (11, 6, 3, 1)  # object 0..10, colour 0..5, door state 0
 BABYAI_ACTION_NAMES = ("left", "right", "forward", "pickup", "drop", "toggle", "done")
 BABYAI_ATTR_VALUES = (len(babyai_language.COLORS), len(babyai_language.TYPES), len(babyai_language.LOCS), 2)
 BABYAI_FIRST_OBJECT = 5  # minigrid's object index of `key`; key, ball, box follow
+BABYAI_DOOR = 4  # minigrid's object index of `door`; its state channel: 0 open, 1 closed, 2 locked
+BABYAI_DOOR_OPEN = 0
+
+# -- achieved outcomes: an episode records up to MAX_OUTCOMES distinct ones (the first in `picked` and
+# `pick_step`, the rest in `later_achieved` and `later_step`); FetchAttr's episodes have at most one.
+MAX_LATER = MAX_OUTCOMES - 1
 
 # -- what the wire admits from any family (the per-run spec checks the run's own limits) -----------
 MAX_CHANNEL_VALUES = tuple(max(a, b) for a, b in zip(VIEW_CHANNEL_VALUES, BABYAI_CHANNEL_VALUES))
@@ -79,6 +85,7 @@ class WorldSpec:
     reward_shaping: bool = False
     family: str = "fetchattr"  # fetchattr | babyai
     level: str = ""  # the BabyAI level's gymnasium id (babyai only)
+    level_kind: str = ""  # the verb of every mission of a BabyAI level: pickup, goto or open (babyai only)
     has_heldout: bool = True  # whether some goals are kept out of training (BabyAI levels have none)
 
     @classmethod
@@ -99,13 +106,28 @@ class WorldSpec:
                    n_actions=len(BABYAI_ACTION_NAMES), channel_values=BABYAI_CHANNEL_VALUES,
                    attr_values=BABYAI_ATTR_VALUES,
                    world_values=tuple(tuple(range(n)) for n in BABYAI_ATTR_VALUES),
-                   reward_shaping=False, family="babyai", level=world.name, has_heldout=False)
+                   reward_shaping=False, family="babyai", level=world.name, level_kind=facts.kind,
+                   has_heldout=False)
 
     @property
     def language(self):
         """The module of this world's instruction language (world/language.py or world/babyai_language.py):
-        both offer VOCAB, MISSION_LEN, encode, decode, parse, parse_many, expert_tokens, with_markers."""
-        return babyai_language if self.family == "babyai" else language
+        or that module's language of the level's kind): both offer VOCAB, MISSION_LEN, encode, decode, parse,
+        parse_many, expert_tokens, with_markers, satisfies."""
+        return babyai_language.LANGUAGES[self.level_kind] if self.family == "babyai" else language
+
+    @property
+    def max_outcomes(self) -> int:
+        """How many distinct achieved outcomes an episode of this world may record: a FetchAttr pick ends
+        its episode (one); a BabyAI agent goes on reaching, opening or picking until the episode ends."""
+        return MAX_OUTCOMES if self.family == "babyai" else 1
+
+    @property
+    def outcome_view_offset(self) -> int:
+        """Which frame shows an achieved outcome, relative to the step that achieved it: the view before a
+        pick or an open (0: the object or door in front), the view after a go-to's step (1: the action
+        that reached the object, a turn or a step, is what put it in front)."""
+        return 1 if self.level_kind == "goto" else 0
 
     @property
     def picked_columns(self) -> int:
@@ -118,16 +140,23 @@ class WorldSpec:
         """The view's kind value of the first pickable object (kinds from here up are objects)."""
         return BABYAI_FIRST_OBJECT if self.family == "babyai" else KIND_KEY
 
+    def front_cell(self, views) -> np.ndarray:
+        """The cell in front of the agent in each view `(n, V, V, 4)`, (n, 4) int64 channels."""
+        return np.asarray(views)[:, self.view_size - 2, self.view_size // 2].astype(np.int64)
+
     def front_object(self, views) -> np.ndarray:
         """The object in the cell in front of the agent in each view `(n, V, V, 4)`, as (n, 4) int64
         attributes of this world's language (-1 where that cell holds no object): what a pick from there
-        would take. BabyAI describes it by colour and type only (-1, -1 for location and article)."""
-        cell = np.asarray(views)[:, self.view_size - 2, self.view_size // 2].astype(np.int64)
+        would take, a go-to reach or (a door) an open open. BabyAI describes it by colour and type only
+        (-1, -1 for location and article); its doors are type `door`."""
+        cell = self.front_cell(views)
         is_object = cell[:, 0] >= self.first_object_kind
-        if self.family == "babyai":  # minigrid's kinds after box (goal, lava, agent) are not pickable
-            is_object &= cell[:, 0] < BABYAI_FIRST_OBJECT + len(babyai_language.TYPES)
-            attrs = np.stack([cell[:, 1], cell[:, 0] - BABYAI_FIRST_OBJECT,
-                              np.full(len(cell), -1), np.full(len(cell), -1)], axis=1)
+        if self.family == "babyai":  # minigrid's kinds after box (goal, lava, agent) are not objects
+            is_object &= cell[:, 0] < BABYAI_FIRST_OBJECT + babyai_language.DOOR
+            is_door = cell[:, 0] == BABYAI_DOOR
+            type_ = np.where(is_door, babyai_language.DOOR, cell[:, 0] - BABYAI_FIRST_OBJECT)
+            is_object |= is_door
+            attrs = np.stack([cell[:, 1], type_, np.full(len(cell), -1), np.full(len(cell), -1)], axis=1)
         else:
             attrs = np.stack([cell[:, 1] - 1, cell[:, 0] - KIND_KEY, cell[:, 2] - 1, cell[:, 3] - 1], axis=1)
         return np.where(is_object[:, None], attrs, -1)

@@ -40,7 +40,7 @@ def _unpack(episodes, spec=SPEC, **kw):
 def test_the_spec_comes_from_the_level():
     assert (SPEC.family, SPEC.view_size, SPEC.max_steps, SPEC.n_actions) == ("babyai", 7, 49, 7)
     assert SPEC.vocab_size == len(lang.VOCAB) and SPEC.mission_len == lang.MISSION_LEN and not SPEC.has_heldout
-    assert SPEC.language is lang and CFG.frames == 1_000_000
+    assert SPEC.language is lang.PICKUP and CFG.frames == 1_000_000
     assert WorldSpec.of(make_config("her", "BabyAI-PickupLoc-v0").world).max_steps == 64
     assert WorldSpec.of(make_config("her", LEVEL, **{"world.max_steps": 30}).world).max_steps == 30
 

@@ -47,6 +47,7 @@ class GeneratorDataset:
         if not 0.0 < val_fraction < 1.0:
             raise ValueError(f"val_fraction: must be in (0, 1), got {val_fraction}")
         self.capacity, self.val_fraction, self.seed = int(capacity), float(val_fraction), int(seed)
+        self.view_offset = spec.outcome_view_offset  # which frame shows the success (see WorldSpec)
         self.views = np.zeros((capacity, *spec.view_shape), np.uint8)
         self.tokens = np.zeros((capacity, spec.mission_len), np.int64)
         self.is_val = np.zeros(capacity, bool)
@@ -81,14 +82,15 @@ class GeneratorDataset:
         self.size = min(self.capacity, self.size + n)
 
     def add_episode(self, ep: Episode) -> bool:
-        """Keep the pair of a successful, original episode; anything else is refused (returns False).
+        """Keep the pair of a successful, original episode: the view that shows its success (before the
+        last step, or after it on a go-to level) and its mission. Anything else is refused (returns False).
 
         Relabelled copies are refused even though they end in reward 1: their mission was written
         by a relabeller, and training on them would feed the generator its own (or noisy) outputs.
         """
         if ep.outcome != SUCCESS or ep.relabelled or ep.length < 1:
             return False
-        self.add(ep.frames[ep.length - 1], ep.mission)
+        self.add(ep.frames[ep.length - 1 + self.view_offset], ep.mission)
         return True
 
     def _filled(self) -> np.ndarray:

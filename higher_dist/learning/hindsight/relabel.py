@@ -7,12 +7,14 @@ The paper's methods differ only here (config_presets.PRESET_RELABEL gives each p
 - `learned` (DQN+HIGhER): the instruction generator describes the view before the pick; it is trained
   on successful episodes only, and used only once its gate is open.
 
-Every strategy relabels copies of failed episodes that picked something: successes already carry their
-reward, episodes that picked nothing have nothing to describe, and relabelled copies are never relabelled
-again. On FetchAttr a failed pick ends the episode (a wrong pick); on a BabyAI level the agent may pick,
-carry, drop and pick again until the time-out: the copy describes its first pick and ends there, with the
-reward the level gives a success on that step. The missions are the world's own language (WorldSpec.language).
-Each relabel is scored against the picked object for the dashboard; that score is computed after the
+Every strategy relabels copies of failed episodes that achieved something: successes already carry their
+reward, episodes that achieved nothing have nothing to describe, and relabelled copies are never relabelled
+again. On FetchAttr a failed pick ends the episode (a wrong pick, its one outcome); on a BabyAI level the
+agent goes on reaching, opening or picking until the time-out, and the episode records each distinct outcome.
+Each outcome may give a copy that describes it and ends there, with the reward the level gives a success on
+that step: up to `relabel.max_per_episode` copies per episode (a random choice when it achieved more). The
+missions are the world's own language (WorldSpec.language). The learner counts only original episodes'
+frames, so copies never buy updates. Each relabel is scored against the achieved object for the dashboard; that score is computed after the
 relabels are made and is never fed back into training. `relabel_accuracy` is over the last
 `RECENT_RELABELS` relabels (a window, so it follows the generator as it improves);
 `relabel_accuracy_total` is since the start of the run.
@@ -25,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from higher_dist import metrics as m
-from higher_dist.config import RELABEL_STRATEGIES, Config, GeneratorConfig
+from higher_dist.config import RELABEL_STRATEGIES, Config, GeneratorConfig, RelabelConfig
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.hindsight.generator import GeneratorTrainer
 from higher_dist.learning.seeds import RelabelerSeeds
@@ -37,8 +39,16 @@ RECENT_RELABELS = 1000  # window of the reported relabel accuracy
 
 
 def relabel_candidates(episodes: list[Episode]) -> list[Episode]:
-    """The episodes a strategy may relabel: original failures that picked an object."""
+    """The episodes a strategy may relabel: original failures that achieved an outcome."""
     return [ep for ep in episodes if ep.outcome != SUCCESS and ep.pick_step >= 0 and not ep.relabelled]
+
+
+class Outcome:
+    """One achieved outcome of a candidate episode: what a copy would describe and where it would end."""
+    __slots__ = ("episode", "index", "step", "attrs")
+
+    def __init__(self, episode: Episode, index: int, step: int, attrs: np.ndarray):
+        self.episode, self.index, self.step, self.attrs = episode, index, step, attrs
 
 
 class RelabelStrategy:
@@ -46,10 +56,12 @@ class RelabelStrategy:
 
     name = "none"
 
-    def __init__(self, seed: int | RelabelerSeeds = 0, spec: WorldSpec = DEFAULT_SPEC):
+    def __init__(self, seed: int | RelabelerSeeds = 0, spec: WorldSpec = DEFAULT_SPEC,
+                 max_per_episode: int = RelabelConfig.max_per_episode):
         """`seed`: the relabeler's streams (Seeds.relabeler), or a run seed standing for its streams."""
         self.rng = np.random.default_rng(RelabelerSeeds.of(seed).draws)
         self.spec, self.language = spec, spec.language
+        self.max_per_episode = int(max_per_episode)
         self.considered = 0  # wrong-pick episodes offered for relabelling
         self.relabelled = 0  # copies returned
         self.correct = 0  # copies whose instruction describes the picked object (metrics only)
@@ -64,31 +76,43 @@ class RelabelStrategy:
         self.considered += len(relabel_candidates(episodes))
         return []
 
-    def _copies(self, originals: list[Episode], missions) -> list[Episode]:
-        """The relabelled copies: each ends at its pick, rewarded as the world rewards a success there."""
-        return [ep.relabel(t, float(self.spec.pick_reward(ep.pick_step + 1))) for ep, t in zip(originals, missions)]
+    def _outcomes(self, candidates: list[Episode]) -> list[Outcome]:
+        """The outcomes to describe: every one of each candidate's, or a random `max_per_episode` of them."""
+        chosen = []
+        for ep in candidates:
+            found = ep.outcomes()
+            picks = range(len(found))
+            if len(found) > self.max_per_episode:
+                picks = sorted(self.rng.choice(len(found), self.max_per_episode, replace=False).tolist())
+            chosen += [Outcome(ep, k, found[k][0], np.asarray(found[k][1], np.int64)) for k in picks]
+        return chosen
+
+    def _copies(self, outcomes: list[Outcome], missions) -> list[Episode]:
+        """The relabelled copies: each ends at its outcome, rewarded as the world rewards a success there."""
+        return [o.episode.relabel(t, float(self.spec.pick_reward(o.step + 1)), outcome=o.index)
+                for o, t in zip(outcomes, missions)]
 
     def train(self, budget_steps: int | None = None) -> dict[str, float]:
         """Spend up to `budget_steps` gradient steps on the generator (only the learned strategy does)."""
         return {}
 
-    def _not_contradicting(self, candidates: list[Episode], attrs: np.ndarray) -> np.ndarray:
+    def _not_contradicting(self, candidates: list[Outcome], attrs: np.ndarray) -> np.ndarray:
         """Indices of the relabels that do not name the goal the episode just failed. Such a copy would
         store the same transitions with reward 1 beside the original with reward 0; it is dropped and
         counted as `contradicting`. Compared with the mission the agent followed, not with ground truth."""
         if not candidates:
             return np.zeros(0, np.int64)
-        goals, _ = self.language.parse_many(np.stack([ep.mission for ep in candidates]))
+        goals, _ = self.language.parse_many(np.stack([o.episode.mission for o in candidates]))
         keep = ~(np.asarray(attrs, np.int64) == goals).all(axis=1)
         self.contradicting += int((~keep).sum())
         return np.flatnonzero(keep)
 
-    def _score(self, originals: list[Episode], new_attrs: np.ndarray) -> None:
-        """Count relabels whose described object is the one picked. The only reader of `ep.picked`
-        in a learned relabel, and it runs after the relabels exist: a score, never an input."""
+    def _score(self, originals: list[Outcome], new_attrs: np.ndarray) -> None:
+        """Count relabels whose described object is the one achieved. The only reader of the achieved
+        objects in a learned relabel, and it runs after the relabels exist: a score, never an input."""
         if not originals:
             return
-        picked = np.stack([np.asarray(ep.picked, np.int64) for ep in originals])
+        picked = np.stack([o.attrs for o in originals])
         right = self.language.satisfies(np.asarray(new_attrs, np.int64), picked)
         self.correct += int(right.sum())
         self.recent_correct.extend(right.tolist())
@@ -135,13 +159,12 @@ class ExpertRelabel(RelabelStrategy):
     def relabel(self, episodes: list[Episode]) -> list[Episode]:
         candidates = relabel_candidates(episodes)
         self.considered += len(candidates)
-        # An original wrong pick always has a picked object; the check guards malformed input.
+        # An achieved outcome always names its object; the check guards malformed input.
         named = self.spec.picked_columns
-        candidates = [ep for ep in candidates if np.all(np.asarray(ep.picked)[:named] >= 0)]
+        candidates = [o for o in self._outcomes(candidates) if np.all(o.attrs[:named] >= 0)]
         if not candidates:
             return []
-        picked = np.stack([np.asarray(ep.picked, np.int64) for ep in candidates])
-        attrs = self._attrs_for(picked)
+        attrs = self._attrs_for(np.stack([o.attrs for o in candidates]))
         keep = self._not_contradicting(candidates, attrs)
         candidates, attrs = [candidates[i] for i in keep], attrs[keep]
         tokens = self.language.expert_tokens(attrs, self.rng)
@@ -155,8 +178,9 @@ class NoisyExpertRelabel(ExpertRelabel):
 
     name = "noisy"
 
-    def __init__(self, space: ObjectSpace, p: float, seed: int | RelabelerSeeds = 0, spec: WorldSpec = DEFAULT_SPEC):
-        super().__init__(seed, spec)
+    def __init__(self, space: ObjectSpace, p: float, seed: int | RelabelerSeeds = 0, spec: WorldSpec = DEFAULT_SPEC,
+                 max_per_episode: int = RelabelConfig.max_per_episode):
+        super().__init__(seed, spec, max_per_episode)
         self.space, self.p = space, float(p)
 
     def _attrs_for(self, picked: np.ndarray) -> np.ndarray:
@@ -164,9 +188,11 @@ class NoisyExpertRelabel(ExpertRelabel):
 
 
 class LearnedRelabel(RelabelStrategy):
-    """HIGhER: the instruction generator describes the view before the pick.
+    """HIGhER: the instruction generator describes the view that shows each chosen outcome (the view before
+    a pick or an open, after a go-to's step: WorldSpec.outcome_view_offset).
 
-    It reads `ep.frames` only: never `ep.picked` or `ep.goal` (except `_score`, after the fact).
+    It reads `ep.frames` and the outcomes' steps only: never what was achieved or `ep.goal` (except
+    `_score`, after the fact).
     While the gate is closed nothing is relabelled; an output that does not parse to an object of
     the language is dropped and counted as `unparseable`, one that names the episode's own (failed)
     goal is dropped and counted as `contradicting`.
@@ -175,8 +201,8 @@ class LearnedRelabel(RelabelStrategy):
     name = "learned"
 
     def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int | RelabelerSeeds = 0,
-                 device: str = "cpu"):
-        super().__init__(seed, spec)
+                 device: str = "cpu", max_per_episode: int = RelabelConfig.max_per_episode):
+        super().__init__(seed, spec, max_per_episode)
         self.cfg = cfg
         self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
@@ -194,7 +220,9 @@ class LearnedRelabel(RelabelStrategy):
         if not self.trainer.gate_open:
             self.gated_off += len(candidates)
             return []
-        views = np.stack([ep.frames[ep.pick_step] for ep in candidates])
+        candidates = self._outcomes(candidates)
+        offset = self.spec.outcome_view_offset
+        views = np.stack([o.episode.frames[o.step + offset] for o in candidates])
         tokens = self.trainer.generate(views)
         attrs, ok = self.language.parse_many(tokens)
         self.unparseable += int((~ok).sum())
@@ -255,15 +283,16 @@ def make_relabel_strategy(cfg: Config, seed: int | RelabelerSeeds, space: Object
     relabeler's streams `seed` (Seeds.relabeler; an int stands for the streams of that run seed)."""
     kind = cfg.relabel.strategy
     spec = WorldSpec.of(cfg.world)
+    most = cfg.relabel.max_per_episode
     if kind == "none":
-        return RelabelStrategy(seed, spec)
+        return RelabelStrategy(seed, spec, most)
     if kind == "expert":
-        return ExpertRelabel(seed, spec)
+        return ExpertRelabel(seed, spec, most)
     if kind == "noisy":
         if spec.family != "fetchattr":
             raise ValueError(f"relabel.strategy: noisy is defined on FetchAttr's attributes, not on {spec.level}")
         return NoisyExpertRelabel(space if space is not None else ObjectSpace(cfg.world), cfg.relabel.noise_p, seed,
-                                  spec)
+                                  spec, most)
     if kind == "learned":
-        return LearnedRelabel(cfg.generator, spec, seed, device=cfg.device)
+        return LearnedRelabel(cfg.generator, spec, seed, device=cfg.device, max_per_episode=most)
     raise ValueError(f"relabel.strategy: unknown strategy {kind!r}; choose one of {', '.join(RELABEL_STRATEGIES)}")
