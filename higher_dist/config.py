@@ -150,9 +150,8 @@ class GeneratorConfig:
 class RelabelConfig:
     strategy: str = "none"  # wrong picks relabelled by: none | expert | noisy | learned
     noise_p: float = 0.2  # noisy expert: each attribute swapped to another value with this probability
-    # Relabelled copies of one failed episode, at most: one per distinct outcome it achieved (BabyAI levels
-    # record several; a FetchAttr episode has one). More outcomes than this: a random choice of them.
-    max_per_episode: int = 4
+    # BabyAI levels record several outcomes per episode, FetchAttr one; more than this: a random choice.
+    max_per_episode: int = 4  # relabelled copies of one failed episode at most, one per distinct outcome
 
 
 @dataclass(frozen=True)

@@ -56,10 +56,15 @@ class Episode:
         """How many achieved outcomes the episode records."""
         return int(self.pick_step >= 0) + int((self.later_step >= 0).sum())
 
-    def outcomes(self) -> list[tuple[int, np.ndarray]]:
-        """(step, attributes) of every recorded outcome, in order."""
-        found = [(self.pick_step, self.picked)] if self.pick_step >= 0 else []
-        return found + [(int(s), self.later_achieved[k]) for k, s in enumerate(self.later_step) if s >= 0]
+    def outcome_steps(self) -> list[int]:
+        """The step of every recorded outcome, in order (what was achieved is not read: a learned
+        relabeller may call this)."""
+        first = [self.pick_step] if self.pick_step >= 0 else []
+        return first + [int(s) for s in self.later_step if s >= 0]
+
+    def outcome_attrs(self, k: int) -> np.ndarray:
+        """What outcome number `k` achieved (ground truth, as `picked`)."""
+        return self.picked if k == 0 else self.later_achieved[k - 1]
 
     @property
     def length(self) -> int:
@@ -79,15 +84,16 @@ class Episode:
         first, `pick_step`), which becomes a success with `reward` (the world's reward for a success on that
         step: WorldSpec.pick_reward). The copy is terminal (outcome WRONG_PICK, the achievement ended it);
         steps after it are not in it, and it records that one outcome only."""
-        found = self.outcomes()
-        if not 0 <= outcome < len(found):
-            raise ValueError(f"Episode.relabel: outcome {outcome} of an episode that records {len(found)}")
-        step, attrs = found[outcome]
+        steps = self.outcome_steps()
+        if not 0 <= outcome < len(steps):
+            raise ValueError(f"Episode.relabel: outcome {outcome} of an episode that records {len(steps)}")
+        step = steps[outcome]
+        picked = self.picked if outcome == 0 else self.later_achieved[outcome - 1].copy()
         end = step + 1
         rewards = np.zeros(end, dtype=np.float32)
         rewards[-1] = reward
         later_achieved, later_step = no_later_outcomes()
         return replace(self, frames=self.frames[: end + 1], actions=self.actions[:end], rewards=rewards,
                        mission=np.asarray(mission, dtype=np.int64).copy(), outcome=WRONG_PICK,
-                       picked=np.asarray(attrs, np.int8).copy(), pick_step=step, relabelled=True,
+                       picked=picked, pick_step=step, relabelled=True,
                        later_achieved=later_achieved, later_step=later_step)

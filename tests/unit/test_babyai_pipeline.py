@@ -46,8 +46,9 @@ def test_the_spec_comes_from_the_level():
 
 
 def test_levels_and_methods_that_do_not_fit_are_refused_by_name():
-    with pytest.raises(ValueError, match="BabyAI-GoToRedBall-v0.*not a BabyAI pickup level"):
-        WorldSpec.of(make_config("her", "BabyAI-GoToRedBall-v0").world)
+    with pytest.raises(ValueError, match="BabyAI-GoToSeq-v0.*not supported: supported are levels whose every "
+                                         "mission is one non-strict 'pick up', 'go to' or 'open' instruction"):
+        WorldSpec.of(make_config("her", "BabyAI-GoToSeq-v0").world)
     with pytest.raises(ConfigError, match="world.reward_shaping"):
         make_config("reward", LEVEL)
     with pytest.raises(ValueError, match="noisy"):
@@ -70,19 +71,32 @@ def test_a_random_policy_gives_every_kind_of_episode():
             assert (front[:2] == ep.picked[:2]).all() and ep.picked[2] == -1
 
 
-def test_the_expert_relabels_failures_up_to_their_first_pick():
-    strategy = ExpertRelabel(seed=0, spec=SPEC)
+@pytest.mark.parametrize("most", [1, 2, 4])
+def test_the_expert_relabels_failures_at_up_to_max_per_episode_of_their_outcomes(most):
+    strategy = ExpertRelabel(seed=0, spec=SPEC, max_per_episode=most)
     copies = strategy.relabel(EPISODES)
-    assert len(copies) == len(FAILED_PICKS) > 10
-    for ep, copy in zip(FAILED_PICKS, copies):
-        assert copy.relabelled and copy.outcome == WRONG_PICK and copy.length == ep.pick_step + 1
-        assert copy.frames.shape[0] == copy.length + 1 and (copy.frames == ep.frames[: copy.length + 1]).all()
-        assert copy.rewards[-1] == pytest.approx(1 - 0.9 * copy.length / SPEC.max_steps, abs=1e-6)
-        described = lang.parse(copy.mission)
-        # "pick up the red ball": colour and type of the picked object, the article as the level would say
-        assert described is not None and described[2] == -1
-        assert (described[[0, 1, 3]] == ep.picked[[0, 1, 3]]).all()
-        assert not ep.relabelled and ep.length >= copy.length and ep.outcome == TIMEOUT  # original untouched
+    expected = sum(min(ep.n_outcomes, most) for ep in FAILED_PICKS)
+    assert len(copies) == expected > 10
+    assert any(ep.n_outcomes > 1 for ep in FAILED_PICKS)  # the level records more than one pickup
+    by_episode = iter(copies)
+    for ep in FAILED_PICKS:
+        steps = ep.outcome_steps()
+        ends = []
+        for _ in range(min(ep.n_outcomes, most)):
+            copy = next(by_episode)
+            assert copy.relabelled and copy.outcome == WRONG_PICK and copy.length - 1 in steps
+            k = steps.index(copy.length - 1)
+            ends.append(k)
+            assert copy.frames.shape[0] == copy.length + 1 and (copy.frames == ep.frames[: copy.length + 1]).all()
+            assert copy.rewards[-1] == pytest.approx(1 - 0.9 * copy.length / SPEC.max_steps, abs=1e-6)
+            described = lang.parse(copy.mission)
+            # "pick up the red ball": colour and type of that outcome's object, the article as the level would say
+            truth = ep.outcome_attrs(k)
+            assert described is not None and described[2] == -1
+            assert (described[[0, 1, 3]] == truth[[0, 1, 3]]).all() and (copy.picked == truth).all()
+            assert copy.n_outcomes == 1 and copy.pick_step == copy.length - 1
+        assert len(set(ends)) == len(ends) and ends == sorted(ends)  # distinct outcomes, in step order
+        assert not ep.relabelled and ep.outcome == TIMEOUT  # original untouched
     assert strategy.metrics()["relabel_accuracy"] == 1.0
 
 

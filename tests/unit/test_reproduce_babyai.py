@@ -47,11 +47,11 @@ def test_fetchattrs_own_experiments_are_refused_in_one_line(tmp_path, capsys):
     assert not (tmp_path / "p").exists()
 
 
-def test_a_level_that_is_no_pickup_level_is_refused_before_anything_runs(tmp_path, capsys):
+def test_a_level_that_is_not_supported_is_refused_before_anything_runs(tmp_path, capsys):
     out = tmp_path / "p"
-    assert cli.main(["--world", "BabyAI-GoToRedBall-v0", "--dry-run", "--out", str(out), "main"]) == 2
+    assert cli.main(["--world", "BabyAI-PutNextLocal-v0", "--dry-run", "--out", str(out), "main"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "'BabyAI-GoToRedBall-v0'" in err[0] and "not a BabyAI pickup level" in err[0]
+    assert len(err) == 1 and "'BabyAI-PutNextLocal-v0'" in err[0] and "is not supported" in err[0]
     assert not out.exists()
 
 

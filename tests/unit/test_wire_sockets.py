@@ -58,6 +58,7 @@ def test_recv_message_counts_rejects_and_returns_none(ctx):
         "rewards": np.zeros(2, np.float32), "lengths": np.array([2], np.int32),
         "mission": np.zeros((1, 10), np.int64), "outcome": np.array([2], np.uint8),
         "picked": -np.ones((1, 4), np.int8), "goal": np.zeros((1, 4), np.int8), "pick_step": -np.ones(1, np.int32),
+        "later_achieved": -np.ones((1, 7, 4), np.int8), "later_step": -np.ones((1, 7), np.int32),
         "relabelled": np.zeros(1, np.uint8), "actor_id": np.zeros(1, np.int32),
         "weights_version": np.zeros(1, np.int64)})[:-3]
     assert send(push, good)

@@ -39,8 +39,9 @@ def test_level_facts_and_pickup_levels():
     assert CHANNEL_VALUES == (len(OBJECT_TO_IDX), len(COLOR_TO_IDX), 3, 1)
 
 
-@pytest.mark.parametrize("name", ["BabyAI-GoToRedBall-v0", "BabyAI-NoSuchLevel-v0"])
-def test_non_pickup_and_unknown_levels_are_refused_by_name(name):
+@pytest.mark.parametrize("name", ["BabyAI-GoToSeq-v0", "BabyAI-PutNextLocal-v0", "BabyAI-ActionObjDoor-v0",
+                                  "BabyAI-OpenDoorDebug-v0", "BabyAI-NoSuchLevel-v0"])
+def test_unsupported_and_unknown_levels_are_refused_by_name(name):
     with pytest.raises(ValueError, match=name) as error:
         level_facts(name)
     assert "BabyAI-PickupDist-v0" in str(error.value)  # lists the levels that would do

@@ -44,11 +44,16 @@ def relabel_candidates(episodes: list[Episode]) -> list[Episode]:
 
 
 class Outcome:
-    """One achieved outcome of a candidate episode: what a copy would describe and where it would end."""
-    __slots__ = ("episode", "index", "step", "attrs")
+    """One achieved outcome of a candidate episode: where a copy describing it would end. What it achieved
+    (`attrs`, ground truth) is read only when asked for: by the expert, and by the score."""
+    __slots__ = ("episode", "index", "step")
 
-    def __init__(self, episode: Episode, index: int, step: int, attrs: np.ndarray):
-        self.episode, self.index, self.step, self.attrs = episode, index, step, attrs
+    def __init__(self, episode: Episode, index: int, step: int):
+        self.episode, self.index, self.step = episode, index, step
+
+    @property
+    def attrs(self) -> np.ndarray:
+        return np.asarray(self.episode.outcome_attrs(self.index), np.int64)
 
 
 class RelabelStrategy:
@@ -80,11 +85,11 @@ class RelabelStrategy:
         """The outcomes to describe: every one of each candidate's, or a random `max_per_episode` of them."""
         chosen = []
         for ep in candidates:
-            found = ep.outcomes()
-            picks = range(len(found))
-            if len(found) > self.max_per_episode:
-                picks = sorted(self.rng.choice(len(found), self.max_per_episode, replace=False).tolist())
-            chosen += [Outcome(ep, k, found[k][0], np.asarray(found[k][1], np.int64)) for k in picks]
+            steps = ep.outcome_steps()
+            picks = range(len(steps))
+            if len(steps) > self.max_per_episode:
+                picks = sorted(self.rng.choice(len(steps), self.max_per_episode, replace=False).tolist())
+            chosen += [Outcome(ep, k, steps[k]) for k in picks]
         return chosen
 
     def _copies(self, outcomes: list[Outcome], missions) -> list[Episode]:
@@ -164,7 +169,7 @@ class ExpertRelabel(RelabelStrategy):
         candidates = [o for o in self._outcomes(candidates) if np.all(o.attrs[:named] >= 0)]
         if not candidates:
             return []
-        attrs = self._attrs_for(np.stack([o.attrs for o in candidates]))
+        attrs = self._attrs_for(np.stack([o.attrs for o in candidates]))  # the expert reads the truth by design
         keep = self._not_contradicting(candidates, attrs)
         candidates, attrs = [candidates[i] for i in keep], attrs[keep]
         tokens = self.language.expert_tokens(attrs, self.rng)
