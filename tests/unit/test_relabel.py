@@ -232,6 +232,15 @@ def test_factory_builds_each_preset_strategy():
     assert learned.cfg.n_min == 100
 
 
+def test_a_fetchattr_failure_gives_one_copy_whatever_max_per_episode_allows():
+    # A FetchAttr pick ends its episode: one outcome, so one copy at most, ending where the original does.
+    batch, wrong = mixed_batch(seed=3)
+    for most in (1, 8):
+        copies = ExpertRelabel(seed=0, max_per_episode=most).relabel(batch)
+        assert len(copies) == len(wrong)
+        assert all(c.length == ep.length and c.n_outcomes == 1 for c, ep in zip(copies, wrong))
+
+
 def test_relabel_accuracy_is_over_the_recent_window_and_the_total_is_reported_beside_it():
     from higher_dist.learning.hindsight.relabel import RECENT_RELABELS
     space = ObjectSpace(WorldConfig())
