@@ -68,7 +68,7 @@ def _run(prog: str, build: Callable[[], int]) -> int:
 
 
 def _world_checked(cfg):
-    """The config, once its world can be built (a BabyAI id that minigrid has as a pickup level): refused
+    """The config, once its world can be built (a BabyAI id of a pickup, go-to or open level): refused
     here in one line rather than by every role that would build it and die."""
     from higher_dist.world.spec import WorldSpec  # numpy only; minigrid only for a BabyAI world
 

@@ -18,7 +18,7 @@ SHADES = ("very_light", "light", "neutral", "dark", "very_dark")
 SIZES = ("tiny", "small", "medium", "large", "giant")
 
 PRESETS = ("dqn", "her", "noisy-her", "higher", "reward")  # the paper's methods (config_presets.py)
-WORLDS = ("paper", "small")  # our own worlds; a BabyAI pickup level is named by its gymnasium id
+WORLDS = ("paper", "small")  # our own worlds; a BabyAI level is named by its gymnasium id
 # Distinct achieved outcomes one episode records at most (world/spec.py: the first and MAX_LATER more).
 MAX_OUTCOMES = 8
 BABYAI_PREFIX = "BabyAI-"
@@ -51,7 +51,7 @@ class ConfigError(ValueError):
 # (`make docs`); why a default is what it is lives in docs/decisions.md.
 @dataclass(frozen=True)
 class WorldConfig:
-    name: str = "paper"  # the world: paper (10x10, 10 objects), small (tests) or a BabyAI pickup level id
+    name: str = "paper"  # the world: paper (10x10, 10 objects), small (tests) or a BabyAI level id
     room_size: int = 10  # interior cells per side; the outer wall is added around it
     n_objects: int = 10  # objects in the room, the goal among them
     colors: tuple[str, ...] = COLORS  # attribute values this world uses (subsets of the global tables)

@@ -61,7 +61,7 @@ def world_name(text: str) -> str:
     if text in WORLDS or is_babyai_world(text):
         return text
     raise argparse.ArgumentTypeError(f"unknown world {text!r}; choose one of {', '.join(WORLDS)} "
-                                     f"or a BabyAI pickup level id such as BabyAI-PickupDist-v0")
+                                     f"or a BabyAI pickup, go-to or open level id such as BabyAI-PickupDist-v0")
 
 
 def add_config_flags(p: argparse.ArgumentParser, layout_actors: bool = False) -> None:
@@ -71,8 +71,8 @@ def add_config_flags(p: argparse.ArgumentParser, layout_actors: bool = False) ->
     # flag the user gave from a default (a resumed run compares only what was given with its config).
     p.add_argument("--preset", choices=PRESETS, default=None, help="the paper's method to run (default: higher)")
     p.add_argument("--world", type=world_name, default=None, metavar="WORLD",
-                   help="paper: 10x10, 10 objects; small: tests; or a BabyAI pickup level id such as "
-                        "BabyAI-PickupDist-v0 (default: paper)")
+                   help="paper: 10x10, 10 objects; small: tests; or a BabyAI pickup, go-to or open level id such as "
+                        "BabyAI-PickupDist-v0 or BabyAI-GoToLocal-v0 (default: paper)")
     p.add_argument("--profile", choices=PROFILES, default=None,
                    help="default: our tuned settings; paper: the paper's (docs/paper_settings.md) (default: default)")
     p.add_argument("--actors", type=positive_int, default=None,

@@ -30,7 +30,7 @@ def world_by_name(name: str) -> WorldConfig:
         # The level's view and step limit come from minigrid when the world is built (max_steps 0).
         return WorldConfig(name=name, max_steps=0, heldout_count=0)
     raise ConfigError(f"world: unknown world {name!r}; choose one of {', '.join(WORLDS)} "
-                      f"or a BabyAI pickup level such as BabyAI-PickupDist-v0")
+                      f"or a BabyAI pickup, go-to or open level such as BabyAI-PickupDist-v0")
 
 
 # What each of the paper's methods relabels its failed episodes with.
@@ -82,7 +82,7 @@ def _higher_on_the_paper_world(cfg: Config) -> Config:
 
 
 def _on_a_babyai_level(cfg: Config) -> Config:
-    # A pickup level's missions are short and its random successes frequent (PickupDist: ~4 pairs per
+    # A BabyAI level's missions are short and its random successes frequent (PickupDist: ~4 pairs per
     # 1000 frames): the generator may start from smaller batches and a smaller dataset, trained faster
     # and checked more often on a larger validation share (docs/decisions.md, "BabyAI levels"). A
     # 1M-frame budget fits a CPU machine.

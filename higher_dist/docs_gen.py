@@ -23,7 +23,7 @@ from higher_dist.config import CHOICES, PRESETS, PROFILES, WORLDS, Config, Confi
 from higher_dist.config_presets import make_config
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"
-# Every BabyAI pickup level changes the same fields (config_presets._on_a_babyai_level): one level stands
+# Every BabyAI level changes the same fields (config_presets._on_a_babyai_level): one level stands
 # for them all in the reference, named "BabyAI level".
 BABYAI_EXAMPLE = "BabyAI-PickupDist-v0"
 DOC_WORLDS = (*WORLDS, BABYAI_EXAMPLE)
@@ -131,7 +131,7 @@ def configuration_md() -> str:
              "a bare word is a string), e.g. `higher-cluster --set dqn.lr=0.001 --set network.fusion=concat`. "
              "`default` is the dataclass default; a preset (`--preset`), a world (`--world`) or a profile "
              "(`--profile`) changes some fields, listed under *set by*, before `--set` applies; *BabyAI level* "
-             f"stands for any BabyAI pickup level id given to `--world` (e.g. `{BABYAI_EXAMPLE}`, "
+             f"stands for any BabyAI pickup, go-to or open level id given to `--world` (e.g. `{BABYAI_EXAMPLE}`, "
              "[babyai.md](babyai.md); `reward` is not defined there). "
              "`--print-config` (on `higher-cluster`, `higher-learner`, `higher-run` and `higher-reproduce`) "
              "prints the config those flags resolve to, as JSON, and exits. Why each default was chosen: "

@@ -155,16 +155,17 @@ def load_relabeller(cfg, run_dir: Path):
 
 
 def relabel_text(strategy, note: str, ep: Episode, rng: np.random.Generator, spec: WorldSpec = DEFAULT_SPEC) -> str:
-    """The instruction the run's relabeller gives a failed episode that picked something (FetchAttr: a
-    wrong pick; BabyAI: a time-out after a pickup), "" for any other episode. The generator describes
-    the frame before the pick, as the relabeler does."""
+    """The instruction the run's relabeller gives a failed episode that achieved something (FetchAttr: a
+    wrong pick; BabyAI: a time-out after an outcome of the level's kind), "" for any other episode. The
+    generator describes the frame that shows the first outcome (WorldSpec.outcome_view_offset), as the
+    relabeler does."""
     if ep.outcome == SUCCESS or ep.pick_step < 0:
         return ""
     if strategy.name == "none":
         return "relabel: none (this method does not relabel)"
     words = spec.language
     if strategy.name == "learned":
-        tokens = strategy.trainer.generate(ep.frames[ep.pick_step][None])[0]
+        tokens = strategy.trainer.generate(ep.frames[ep.pick_step + spec.outcome_view_offset][None])[0]
         text = words.decode(tokens)
         return (f"generator: \"{text}\"" + ("" if words.parse(tokens) is not None else " (unparseable: dropped)")
                 + f" [{note}]")
@@ -212,7 +213,7 @@ def watch(cfg, policy, episodes: int, goal_set: str, seed: int, tile: int = 24) 
 
 def outcome_text(ep: Episode, spec: WorldSpec = DEFAULT_SPEC) -> str:
     if spec.family == "babyai":
-        return render_babyai.outcome_text(ep)
+        return render_babyai.outcome_text(ep, spec.level_kind)
     if ep.outcome == SUCCESS:
         return f"SUCCESS after {ep.length} steps"
     if ep.outcome == TIMEOUT:

@@ -5,9 +5,10 @@ agent, the cells of its view highlighted) above the same text panel as a FetchAt
 draws the room from the env's live state, so the picture is taken before each action, as render.py's
 FetchAttr snapshots are.
 
-A BabyAI episode ends on the mission's pickup or at the level's step limit; a wrong pickup does not
-end it (the agent carries the object on). So its outcome is a success or a time-out, and a time-out
-names the first object picked up, the one hindsight describes.
+A BabyAI episode ends when the mission is achieved or at the level's step limit; achieving anything
+else (picking up, reaching or opening another object, by the level's kind) does not end it. So its
+outcome is a success or a time-out, and a time-out names its first achieved outcome, by the level's
+verb, and counts the ones after it: hindsight may describe each of them.
 """
 from __future__ import annotations
 
@@ -56,16 +57,24 @@ def draw_picture(shot: Picture, lines: list[str]):
     return img
 
 
-def object_text(picked) -> str:
-    """"a red ball" for a picked object's (colour, type, location, plural) attributes."""
-    color, type_ = (int(a) for a in np.asarray(picked)[:2])
+# What an achieved outcome did, by the level's kind (WorldSpec.level_kind).
+DONE = {"pickup": "picked up", "goto": "reached", "open": "opened"}
+
+
+def object_text(achieved) -> str:
+    """"a red ball" (or "a red door") for an achieved object's (colour, type, location, plural) attributes."""
+    color, type_ = (int(a) for a in np.asarray(achieved)[:2])
     return f"a {lang.COLORS[color]} {lang.TYPES[type_]}"
 
 
-def outcome_text(ep: Episode) -> str:
+def outcome_text(ep: Episode, kind: str = "pickup") -> str:
+    """"SUCCESS after 12 steps", or "TIME-OUT after 64 steps, reached a red ball first (step 9), then 2 more"
+    on a level of `kind`."""
     if ep.outcome == SUCCESS:
         return f"SUCCESS after {ep.length} steps"
     text = f"TIME-OUT after {ep.length} steps"
     if ep.pick_step >= 0:
-        text += f", picked {object_text(ep.picked)} first (step {ep.pick_step + 1})"
+        text += f", {DONE[kind]} {object_text(ep.picked)} first (step {ep.pick_step + 1})"
+        if ep.n_outcomes > 1:
+            text += f", then {ep.n_outcomes - 1} more"
     return text

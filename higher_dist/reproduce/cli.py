@@ -44,7 +44,7 @@ def parser() -> argparse.ArgumentParser:
                         f"cgroup quota: {plan_mod.default_parallel()})")
     p.add_argument("--out", default="runs/reproduce", help="the plan's folder (plan.json, runs/, figures/, results.md)")
     p.add_argument("--world", type=world_name, default="paper", metavar="WORLD",
-                   help="paper, small (a quick world for smoke tests) or a BabyAI pickup level id")
+                   help="paper, small (a quick world for smoke tests) or a BabyAI pickup, go-to or open level id")
     p.add_argument("--methods", default=None, metavar="LIST",
                    help="only these variants or presets, comma-separated (e.g. dqn,her)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="a config override for every run")

@@ -238,7 +238,7 @@ def check_configs(plan: Plan) -> dict[str, Config]:
         except SystemExit:
             raise ConfigError(f"run {run.name}: flags refused: {' '.join(argv)}") from None
         cfg = config_from_args(args)
-        try:  # a world that cannot be built (a BabyAI id that is no pickup level) is refused here
+        try:  # a world that cannot be built (a BabyAI id of no supported level) is refused here
             WorldSpec.of(cfg.world)
         except ValueError as e:
             raise ConfigError(f"--world: {e}") from None

@@ -1,4 +1,4 @@
-"""The one place that turns a world config into a batched world: FetchAttr or a BabyAI pickup level.
+"""The one place that turns a world config into a batched world: FetchAttr or a BabyAI level.
 
 Both give the same interface: `reset() -> (views (B, V, V, 4) uint8, missions (B, L) int64)` and
 `step(actions) -> StepResult`, with finished episodes restarting in place.

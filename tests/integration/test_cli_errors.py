@@ -51,8 +51,8 @@ def test_cluster_refuses_bad_flags_as_a_process(tmp_path, flags, expected):
 @pytest.mark.parametrize("flags, expected", [
     (["--preset", "nope"], ["--preset", "invalid choice", "'nope'"]),
     (["--world", "nope"], ["--world", "unknown world", "'nope'", "BabyAI-PickupDist-v0"]),
-    (["--world", "BabyAI-GoToRedBall-v0"], ["'BabyAI-GoToRedBall-v0'", "not a BabyAI pickup level",
-                                            "BabyAI-PickupDist-v0"]),
+    (["--world", "BabyAI-GoToSeq-v0"], ["'BabyAI-GoToSeq-v0'", "not supported", "'pick up', 'go to' or 'open'",
+                                        "BabyAI-GoToRedBall-v0"]),
     (["--world", "BabyAI-Nope-v0"], ["'BabyAI-Nope-v0'", "unknown id"]),
     (["--world", "BabyAI-PickupDist-v0", "--preset", "reward"], ["world.reward_shaping", "BabyAI"]),
     (["--world", "BabyAI-PickupDist-v0", "--set", "world.view_size=5"], ["world.view_size", "7x7"]),

@@ -207,8 +207,9 @@ def test_babyai_panel_of_a_time_out_after_a_pickup_names_the_relabel(babyai_run)
     watched = render.Watched(lang.decode(failed.mission), [], episode=failed, relabel=text)
     lines = render.panel_lines(watched, failed.length - 1, True, spec, "her", 0, 1)
     assert lines[1] == f"mission: {lang.decode(failed.mission)}"
-    assert lines[2] == (f"TIME-OUT after {failed.length} steps, picked a {color} {type_} first "
-                        f"(step {failed.pick_step + 1})")
+    later = f", then {failed.n_outcomes - 1} more" if failed.n_outcomes > 1 else ""
+    assert lines[2] == (f"TIME-OUT after {failed.length} steps, picked up a {color} {type_} first "
+                        f"(step {failed.pick_step + 1}){later}")
     assert lines[3] == text and "level mission" in lines[0]
     assert render.panel_lines(watched, 0, False, spec, "her", 0, 1)[2:] == ["", ""]  # only the last frame tells
     # Neither a success nor a time-out that picked nothing is relabelled.
