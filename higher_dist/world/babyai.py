@@ -113,7 +113,7 @@ class BatchedBabyAI:
         self.level_id, self.batch_size = level_id, int(batch_size)
         self.view_size = self.facts.view_size
         self.max_steps = self.facts.max_steps if max_steps is None else int(max_steps)
-        # Every pickup level takes `max_steps` and then keeps it fixed instead of deriving it per episode.
+        # Every supported level takes `max_steps` and then keeps it fixed instead of deriving it per episode.
         kwargs = {} if max_steps is None else {"max_steps": self.max_steps}
         self._envs = [gym.make(level_id, **kwargs).unwrapped for _ in range(self.batch_size)]
         self._init_seeds(seed, env_seeds)

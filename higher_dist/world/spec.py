@@ -10,11 +10,11 @@ Two kinds of knowledge live here:
   episode limit, which attribute values this world uses). Build it with `WorldSpec.of(world_cfg)`.
 
 Two world families share these encodings. `fetchattr` is our own numpy world (world/grid.py). `babyai`
-is a Farama Minigrid BabyAI pickup level (world/babyai.py), named by its gymnasium id: its views are
-minigrid's (object, colour, state) cells plus a fourth channel that is always 0, its actions are the
-level's 7, its missions are the level's own sentences (world/babyai_language.py) and a described object
-is (colour, type, location, plural) into that module's tables. The wire schema caps what any family can
-send (`MAX_*` below); each run's `WorldSpec` holds its own tighter limits.
+is a Farama Minigrid BabyAI pickup, go-to or open level (world/babyai.py), named by its gymnasium id:
+its views are minigrid's (object, colour, state) cells plus a fourth channel that is always 0, its
+actions are the level's 7, its missions are the level's own sentences (world/babyai_language.py) and a
+described object is (colour, type, location, plural) into that module's tables. The wire schema caps what
+any family can send (`MAX_*` below); each run's `WorldSpec` holds its own tighter limits.
 """
 from __future__ import annotations
 
