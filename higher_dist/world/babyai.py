@@ -19,7 +19,9 @@ Achieved outcomes. What counts is what the level counts: at each reset the env g
 own verifiers (the level's kind: `PickupInstr`, `GoToInstr` or `OpenInstr`) per distinct (colour, type)
 of the objects its instructions may name, reset as the level resets its own, and stepped as the level
 steps its own (object positions refreshed after a drop). The first step a verifier accepts is an outcome,
-described "VERB the|a COLOR TYPE": the article is the one the level would use (several objects match: "a").
+recorded as (colour, type, location mask, plural): plural when several objects match (the level would say
+"a"); the mask has bit i set when LOCS[i] ("on your left", ...) describes the achieved object from the
+agent's start, by minigrid's own location rule, so a description that names a location can be judged.
 A go-to is recorded only while the object is in front: minigrid also accepts facing the cell where an
 object lay before the agent picked it up, which no view shows. `picked` / `pick_step` report the first
 outcome, `later_achieved` / `later_step` up to MAX_LATER more.
@@ -59,7 +61,13 @@ class OutcomeWatch:
     """One episode's achieved outcomes on one env, judged by the level's own verifier class."""
 
     def __init__(self, env, kind: str, language: lang.BabyAILanguage):
-        self.kind, self.found = kind, []  # found: (step, (colour, type, -1, plural)) in order
+        self.kind, self.found = kind, []  # found: (step, (colour, type, location mask, plural)) in order
+        # Which location words describe each object, from the agent's start: minigrid's own location rule
+        # (ObjDesc.find_matching_objs at reset), bit i for LOCS[i]; objects outside the start room have none.
+        self.loc_masks: dict[int, int] = {}
+        for bit, loc in enumerate(lang.LOCS):
+            for obj in ObjDesc(None, None, loc).find_matching_objs(env)[0]:
+                self.loc_masks[id(obj)] = self.loc_masks.get(id(obj), 0) | (1 << bit)
         names = {lang.TYPES[t] for t in language.types}
         descriptions = dict.fromkeys((cell.color, cell.type) for cell in env.grid.grid
                                      if cell is not None and cell.type in names)
@@ -67,7 +75,7 @@ class OutcomeWatch:
         for color, type_ in descriptions:
             verifier = _VERIFIERS[kind](ObjDesc(type_, color))
             verifier.reset_verifier(env)
-            attrs = (_COLOR_INDEX[color], _TYPE_INDEX[type_], -1, int(len(verifier.desc.obj_set) > 1))
+            attrs = (_COLOR_INDEX[color], _TYPE_INDEX[type_], int(len(verifier.desc.obj_set) > 1))
             self.pending.append((verifier, attrs))
 
     def step(self, env, action: int, step: int) -> bool:
@@ -77,21 +85,25 @@ class OutcomeWatch:
                 verifier.update_objs_poss()
         new, still = False, []
         for verifier, attrs in self.pending:
-            if verifier.verify(action) == "success" and self._shown(env, attrs):
+            obj = verifier.verify(action) == "success" and self._achieved_object(env, attrs)
+            if obj:
                 if len(self.found) < MAX_OUTCOMES:
-                    self.found.append((step, attrs))
+                    color, type_, plural = attrs
+                    self.found.append((step, (color, type_, self.loc_masks.get(id(obj), 0), plural)))
                     new = True
             else:
                 still.append((verifier, attrs))
         self.pending = still
         return new
 
-    def _shown(self, env, attrs) -> bool:
-        """A go-to counts only with the object in front (see the module's docstring)."""
-        if self.kind != "goto":
-            return True
-        cell = env.grid.get(*env.front_pos)
-        return cell is not None and (_COLOR_INDEX.get(cell.color), _TYPE_INDEX.get(cell.type)) == attrs[:2]
+    def _achieved_object(self, env, attrs):
+        """The object a step the verifier accepted achieved: the one now carried, or the one in front (the
+        door just opened, the object reached). None for a go-to without it in front (see the module's
+        docstring)."""
+        obj = env.carrying if self.kind == "pickup" else env.grid.get(*env.front_pos)
+        if obj is None or (_COLOR_INDEX.get(obj.color), _TYPE_INDEX.get(obj.type)) != attrs[:2]:
+            return None
+        return obj
 
 
 class BatchedBabyAI:

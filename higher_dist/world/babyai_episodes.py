@@ -9,6 +9,7 @@ importing minigrid, so that a receiver can check episodes of a level:
   action with the object in front before it; an open is a toggle that leaves the door in front open; a
   go-to is any step after which the object is in front (`WorldSpec.outcome_view_offset`).
 A described object is (colour, type, location, plural): the location may be unnamed, the plural flag never is.
+An achieved object is (colour, type, location mask, plural) (world/babyai_language.py).
 """
 from __future__ import annotations
 
@@ -40,11 +41,10 @@ class BabyAIEpisodes:
 
     @staticmethod
     def outcome_attributes_ok(spec, attrs) -> np.ndarray:
-        """An achieved outcome's object names colour, type (one this kind's instructions name) and plural,
-        never a location."""
+        """An achieved outcome's object names colour, type (one this kind's instructions name), plural and
+        its location mask (any of 0..15: where the agent started is not in the views, so it is not checked)."""
         types = np.asarray(spec.language.types)
-        return ((attrs[:, [0, 1, 3]] >= 0).all(axis=1) & (attrs[:, 2] == -1)
-                & np.isin(attrs[:, 1], types))
+        return (attrs >= 0).all(axis=1) & np.isin(attrs[:, 1], types)
 
     @classmethod
     def attributes_ok(cls, spec, b, picks) -> np.ndarray:

@@ -14,7 +14,9 @@ one object of the level matches the description (location included), else "a".
 A mission is a `(MISSION_LEN,)` int64 array of word ids padded with PAD, without BEG/END markers.
 A described object is a `(4,)` int8 array `(color, type, loc, plural)`: indices into COLORS, TYPES
 and LOCS, -1 where the sentence does not name that attribute ("object" = no type), and plural 1
-for the article "a", 0 for "the".
+for the article "a", 0 for "the". An achieved object (what the world records for hindsight) has the
+same columns except the third: a location mask, bit i set when LOCS[i] describes the object from where
+the agent started (0..15; 0 when no location word does).
 """
 from __future__ import annotations
 
@@ -81,14 +83,19 @@ def with_markers(missions) -> np.ndarray:
     return tokens.with_markers(missions, MISSION_LEN)
 
 
+LOC_MASKS = 1 << len(LOCS)  # an achieved object's location mask is in [0, LOC_MASKS)
+
+
 def satisfies(described, objects) -> np.ndarray:
-    """Whether each object `objects (n, 4)` (colour, type, ...) fits the description `described (n, 4)`,
-    as the level's verifier judges it: an unnamed colour or type (-1) admits any. The location and the
-    article are not properties of the object (they depend on where the agent started and on the other
-    objects), so they are not judged."""
+    """Whether each achieved object `objects (n, 4)` (colour, type, location mask, plural) fits the
+    description `described (n, 4)`, as the level's verifier judges it: an unnamed colour, type or location
+    (-1) admits any; a named location must be one of the object's (its mask; an object whose mask is
+    unknown, -1, fits no named location). The article is not judged: the verifier accepts any object
+    the description matches, whatever the level would have called it."""
     d, o = np.asarray(described, np.int64), np.asarray(objects, np.int64)
+    loc_ok = (d[..., 2] == -1) | ((o[..., 2] >= 0) & ((np.maximum(o[..., 2], 0) >> np.maximum(d[..., 2], 0)) & 1 > 0))
     return (((d[..., 0] == -1) | (d[..., 0] == o[..., 0])) & ((d[..., 1] == -1) | (d[..., 1] == o[..., 1]))
-            & (o[..., 0] >= 0) & (o[..., 1] >= 0))
+            & loc_ok & (o[..., 0] >= 0) & (o[..., 1] >= 0))
 
 
 class BabyAILanguage:

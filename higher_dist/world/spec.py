@@ -52,7 +52,8 @@ RUNNING = -1  # outcome of an env whose episode goes on
 # -- the BabyAI family (values minigrid defines; checked against minigrid by tests/unit/test_world_babyai.py)
 BABYAI_CHANNEL_VALUES = (11, 6, 3, 1)  # object 0..10, colour 0..5, door state 0..2, padding channel
 BABYAI_ACTION_NAMES = ("left", "right", "forward", "pickup", "drop", "toggle", "done")
-BABYAI_ATTR_VALUES = (len(babyai_language.COLORS), len(babyai_language.TYPES), len(babyai_language.LOCS), 2)
+# The third column: a goal's location index (0..3) or an achieved object's location mask (0..15).
+BABYAI_ATTR_VALUES = (len(babyai_language.COLORS), len(babyai_language.TYPES), babyai_language.LOC_MASKS, 2)
 BABYAI_FIRST_OBJECT = 5  # minigrid's object index of `key`; key, ball, box follow
 BABYAI_DOOR = 4  # minigrid's object index of `door`; its state channel: 0 open, 1 closed, 2 locked
 BABYAI_DOOR_OPEN = 0

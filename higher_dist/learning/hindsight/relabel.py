@@ -170,10 +170,11 @@ class ExpertRelabel(RelabelStrategy):
         if not candidates:
             return []
         attrs = self._attrs_for(np.stack([o.attrs for o in candidates]))  # the expert reads the truth by design
-        keep = self._not_contradicting(candidates, attrs)
-        candidates, attrs = [candidates[i] for i in keep], attrs[keep]
         tokens = self.language.expert_tokens(attrs, self.rng)
-        self._score(candidates, attrs)
+        described, _ = self.language.parse_many(tokens)  # what the sentences say (BabyAI: no location)
+        keep = self._not_contradicting(candidates, described)
+        candidates, described, tokens = [candidates[i] for i in keep], described[keep], tokens[keep]
+        self._score(candidates, described)
         return self._copies(candidates, tokens)
 
 
