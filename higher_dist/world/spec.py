@@ -162,6 +162,19 @@ class WorldSpec:
             attrs = np.stack([cell[:, 1] - 1, cell[:, 0] - KIND_KEY, cell[:, 2] - 1, cell[:, 3] - 1], axis=1)
         return np.where(is_object[:, None], attrs, -1)
 
+    def fulfilled_by(self, views, missions) -> np.ndarray:
+        """The object a successful episode's mission was fulfilled by, as far as its pair (the view that
+        shows the success, the mission) tells, as (n, 4) int64 achieved attributes for `language.satisfies`.
+        FetchAttr: the mission names it whole. BabyAI: colour and type of the object in front (a mission may
+        leave them unnamed); its location mask holds the one location the mission names (the object is
+        there, seen from the start; other locations it may also be in are unknown), else -1 (unknown)."""
+        named, _ = self.language.parse_many(missions)
+        if self.family != "babyai":
+            return named
+        out = self.front_object(views)
+        out[:, 2] = np.where(named[:, 2] >= 0, 1 << np.maximum(named[:, 2], 0), -1)
+        return out
+
     def pick_reward(self, length) -> np.ndarray:
         """The reward of a successful pick on step `length` of an episode (array-valued): 1 on FetchAttr,
         BabyAI's 1 - 0.9 * length / max_steps on its levels. What a relabelled copy's last step gets."""

@@ -219,12 +219,8 @@ class GeneratorTrainer:
 
     def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray) -> dict[str, float]:
         """Semantic accuracy of the greedy outputs on given pairs: do they describe the object the pair's
-        mission was fulfilled by? On FetchAttr the mission names it whole; a BabyAI mission may name only
-        its colour or type, so there the truth is the object in front in the view (the one picked)."""
-        if self.spec.family == "babyai":
-            true_attrs = self.spec.front_object(views)
-        else:
-            true_attrs, _ = self.language.parse_many(tokens)
+        mission was fulfilled by (`WorldSpec.fulfilled_by`)?"""
+        true_attrs = self.spec.fulfilled_by(views, tokens)
         return semantic_accuracy(self.generate(views), true_attrs, self.language)
 
     def evaluate(self) -> dict[str, float]:
