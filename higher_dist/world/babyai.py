@@ -80,7 +80,9 @@ class OutcomeWatch:
 
     def step(self, env, action: int, step: int) -> bool:
         """Judge the step just taken (index `step` of the episode); True when it achieved something new."""
-        if action == ACTION_DROP:  # as the level does for its own verifier: objects may have moved
+        # As the level does for its own verifier after a drop: objects may have moved. Only a go-to's
+        # verifier reads positions; pickup and open verifiers compare the objects themselves.
+        if action == ACTION_DROP and self.kind == "goto":
             for verifier, _ in self.pending:
                 verifier.update_objs_poss()
         new, still = False, []
