@@ -26,7 +26,8 @@ from support.babyai_lies import COPY_LIES, ORIGINAL_LIES, lie, lies_for
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 # Level -> (wrong messages, real episodes the lies are made from, honest episodes sent after them). The open
-# level's random episodes run to 576 steps: fewer of them, and fewer messages, keep each case within about two minutes on a shared machine.
+# level's random episodes run to 576 steps: fewer of them, and fewer messages, keep each case within about
+# two minutes on a shared machine.
 LEVELS = {"BabyAI-PickupDist-v0": (2_000, 300, 240), "BabyAI-GoToLocal-v0": (1_500, 150, 120),
           "BabyAI-OpenDoorLoc-v0": (800, 40, 30)}
 SETTINGS = {"replay.min_size": 300, "replay.samples_per_insert": 1, "dqn.batch_size": 32, "dqn.compile": "false",
