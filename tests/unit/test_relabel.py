@@ -16,6 +16,7 @@ from higher_dist.learning.hindsight.relabel import (ExpertRelabel, LearnedRelabe
 from higher_dist.rundir import RunDir
 from higher_dist.world.language import VOCAB, expert_tokens, parse
 from higher_dist.world.objects import ObjectSpace
+from support.tripwire import Tripwire
 
 torch.set_num_threads(1)
 
@@ -166,28 +167,6 @@ def test_learned_drops_and_counts_relabels_that_name_the_failed_goal(trained):
     assert len(trained.relabel(wrong)) >= 0.8 * len(wrong)
 
 
-class Tripwire:
-    """Stands in for ground truth: any use of it (other than passing it along) raises."""
-
-    def __getattr__(self, name):
-        raise RuntimeError(f"ground truth read: .{name}")
-
-    def __array__(self, *args, **kwargs):
-        raise RuntimeError("ground truth read: __array__")
-
-    def __getitem__(self, key):
-        raise RuntimeError("ground truth read: []")
-
-    def __iter__(self):
-        raise RuntimeError("ground truth read: iter")
-
-    def __len__(self):
-        raise RuntimeError("ground truth read: len")
-
-    def __eq__(self, other):
-        raise RuntimeError("ground truth read: ==")
-
-    __hash__ = object.__hash__
 
 
 def test_learned_never_reads_picked_or_goal_to_relabel(trained, monkeypatch):

@@ -18,6 +18,7 @@ from higher_dist.learning.hindsight.relabel import ExpertRelabel, LearnedRelabel
 from higher_dist.learning.learner import Learner
 from higher_dist.learning.random_episodes import real_episodes
 from higher_dist.world.spec import WorldSpec
+from support.tripwire import PassedAlong
 
 torch.set_num_threads(1)  # a test shares the machine
 
@@ -94,32 +95,6 @@ def test_relabelled_copies_are_never_relabelled_again():
     assert len(again) == len(copies)
 
 
-class PassedAlong:
-    """Ground truth that may be handed on (indexed, copied into a relabelled copy) but never looked at:
-    comparing it, turning it into an array or iterating it raises."""
-
-    def __getitem__(self, key):
-        return PassedAlong()
-
-    def copy(self):
-        return PassedAlong()
-
-    def __getattr__(self, name):
-        raise RuntimeError(f"ground truth read: .{name}")
-
-    def __array__(self, *args, **kwargs):
-        raise RuntimeError("ground truth read: __array__")
-
-    def __iter__(self):
-        raise RuntimeError("ground truth read: iter")
-
-    def __len__(self):
-        raise RuntimeError("ground truth read: len")
-
-    def __eq__(self, other):
-        raise RuntimeError("ground truth read: ==")
-
-    __hash__ = object.__hash__
 
 
 def front_describer(spec: WorldSpec, seen: list[np.ndarray]):
