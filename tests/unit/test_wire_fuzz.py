@@ -16,9 +16,10 @@ from dataclasses import replace
 from higher_dist.config import WorldConfig
 from higher_dist.learning.episode import Episode
 from higher_dist.learning.random_episodes import real_episodes
-from higher_dist.world.spec import MAX_ACTIONS, MAX_CHANNEL_VALUES, WorldSpec
+from higher_dist.world.spec import MAX_ACTIONS, MAX_ATTR_VALUES, MAX_CHANNEL_VALUES, WorldSpec
 from higher_dist.wire import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, WireError, decode, encode, encode_weights,
                               pack_episodes, unpack_episodes)
+from higher_dist.wire.schema import MAX_STEPS as MAX_SCHEMA_STEPS
 from higher_dist.wire.schema import MAX_TOKEN, SPECS
 
 SPEC = WorldSpec.of(WorldConfig())
@@ -182,7 +183,8 @@ def test_flipped_bytes_weights(data):
 
 
 @FUZZ
-@given(st.sampled_from(["actions", "rewards", "mission", "frames", "outcome", "picked", "goal", "relabelled"]),
+@given(st.sampled_from(["actions", "rewards", "mission", "frames", "outcome", "picked", "goal", "later_achieved",
+                        "later_step", "relabelled"]),
        st.data())
 def test_injected_bad_values_are_rejected(array_name, data):
     rng = np.random.default_rng(data.draw(st.integers(0, 1000)))
@@ -197,8 +199,10 @@ def test_injected_bad_values_are_rejected(array_name, data):
     elif array_name == "frames":
         channel = position % 4
         flat[position] = data.draw(st.integers((4, 6, 5, 5)[channel] + 1, 255))
-    elif array_name in ("picked", "goal"):
+    elif array_name in ("picked", "goal", "later_achieved"):
         flat[position] = data.draw(st.integers(-128, -2) | st.integers(6, 127))
+    elif array_name == "later_step":
+        flat[position] = data.draw(st.integers(-2 ** 31, -2) | st.integers(MAX_SCHEMA_STEPS, 2 ** 31 - 1))
     else:
         high = {"actions": 3, "outcome": 2, "relabelled": 1}[array_name]
         flat[position] = data.draw(st.integers(high + 1, 255))
@@ -214,6 +218,8 @@ def test_injected_bad_values_are_rejected(array_name, data):
             expected = "action"  # another world's action (BabyAI has 7): the run's spec refuses it
         if array_name == "frames" and flat[position] < MAX_CHANNEL_VALUES[position % 4]:
             expected = "cell"  # another world's cell (BabyAI's objects): the run's spec refuses it
+        if array_name in ("picked", "goal", "later_achieved") and 0 <= flat[position] < MAX_ATTR_VALUES[position % 4]:
+            expected = "attribute"  # another world's value (a BabyAI location mask): the run's spec refuses it
         assert exc.reason == expected
     else:
         raise AssertionError(f"an out-of-range {array_name} value was accepted")
