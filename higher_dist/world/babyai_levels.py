@@ -19,7 +19,6 @@ _PROBE_SEED = 0
 # episode has the first one's kind (BabyAI-ActionObjDoor-v0 mixes go-to, pickup and open missions).
 _CONFIRM_SEEDS = range(1, 25)
 _KIND_OF_INSTR = {PickupInstr: "pickup", GoToInstr: "goto", OpenInstr: "open"}
-_LEVELGEN_KIND = {"pickup": "pickup", "goto": "goto", "open": "open"}  # LevelGen's action_kinds names
 SUPPORTED = "levels whose every mission is one non-strict 'pick up', 'go to' or 'open' instruction"
 
 

@@ -174,7 +174,7 @@ def _later_outcome_faults(spec: WorldSpec, rules, b: EpisodeBatch, picks: np.nda
     steps = np.concatenate([b.pick_step[:, None], step], axis=1)
     rising = np.where(step >= 0, step > steps[:, :-1], True).all(axis=1)
     flag(~prefix.all(axis=1) | ~rising | (step >= b.lengths[:, None]).any(axis=1) | ((n_later > 0) & ~picks)
-         | (n_later + 1 > spec.max_outcomes) & (n_later > 0), "later_outcome")
+         | (n_later + 1 > spec.max_outcomes), "later_outcome")
     flat = attrs.reshape(-1, 4)
     set_ok = rules.outcome_attributes_ok(spec, flat).reshape(step.shape)
     unset_ok = (attrs == -1).all(axis=2)
