@@ -28,6 +28,7 @@ from higher_dist.config import COLORS, SHADES, SIZES, TYPES, ConfigError, from_d
 from higher_dist.config_flags import DefaultsHelp
 from higher_dist import render_babyai
 from higher_dist.learning.episode import Episode
+from higher_dist.learning.hindsight.generator_data import generator_inputs
 from higher_dist.world.spec import DEFAULT_SPEC, SUCCESS, TIMEOUT, WorldSpec
 from higher_dist.world.grid import DIRECTION_VECTORS, KIND_BALL, KIND_KEY, KIND_WALL, cell_attrs
 
@@ -165,7 +166,7 @@ def relabel_text(strategy, note: str, ep: Episode, rng: np.random.Generator, spe
         return "relabel: none (this method does not relabel)"
     words = spec.language
     if strategy.name == "learned":
-        tokens = strategy.trainer.generate(ep.frames[ep.pick_step + spec.outcome_view_offset][None])[0]
+        tokens = strategy.trainer.generate(*generator_inputs(spec, ep, [ep.pick_step]))[0]
         text = words.decode(tokens)
         return (f"generator: \"{text}\"" + ("" if words.parse(tokens) is not None else " (unparseable: dropped)")
                 + f" [{note}]")

@@ -99,6 +99,19 @@ def is_pickup_level(name: str) -> bool:
     return level_kind(name) == "pickup"
 
 
+def _names_locations(env) -> bool:
+    """Whether the level's missions may name a location: a level generator says so (`locations`); other
+    levels are probed on the confirming seeds (BabyAI-OpenDoor-v0 names one in about half its missions)."""
+    if hasattr(env, "locations"):
+        return bool(env.locations)
+    with _quiet():
+        for seed in (_PROBE_SEED, *_CONFIRM_SEEDS):
+            env.reset(seed=seed)
+            if getattr(env.instrs.desc, "loc", None) is not None:
+                return True
+    return False
+
+
 @dataclass(frozen=True)
 class LevelFacts:
     """What the rest of the system needs to know about a level before running it."""
@@ -107,7 +120,7 @@ class LevelFacts:
     view_size: int
     max_steps: int
     n_actions: int
-    has_locations: bool  # missions may name a location ("... on your left"): LevelGen's `locations`
+    has_locations: bool  # missions may name a location ("... on your left")
     room_size: int
     grid_width: int
     grid_height: int
@@ -122,5 +135,5 @@ def level_facts(level_id: str) -> LevelFacts:
     env = _probe(level_id)
     return LevelFacts(level_id=level_id, kind=level_kind(level_id), view_size=int(env.observation_space["image"].shape[0]),
                       max_steps=int(env.max_steps), n_actions=int(env.action_space.n),
-                      has_locations=bool(getattr(env, "locations", False)),
+                      has_locations=_names_locations(env),
                       room_size=int(env.room_size), grid_width=int(env.width), grid_height=int(env.height))

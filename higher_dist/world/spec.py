@@ -88,6 +88,7 @@ class WorldSpec:
     level: str = ""  # the BabyAI level's gymnasium id (babyai only)
     level_kind: str = ""  # the verb of every mission of a BabyAI level: pickup, goto or open (babyai only)
     has_heldout: bool = True  # whether some goals are kept out of training (BabyAI levels have none)
+    has_locations: bool = False  # whether missions may name a location seen from the start (BabyAI only)
 
     @classmethod
     def of(cls, world: WorldConfig) -> "WorldSpec":
@@ -108,7 +109,7 @@ class WorldSpec:
                    attr_values=BABYAI_ATTR_VALUES,
                    world_values=tuple(tuple(range(n)) for n in BABYAI_ATTR_VALUES),
                    reward_shaping=False, family="babyai", level=world.name, level_kind=facts.kind,
-                   has_heldout=False)
+                   has_heldout=False, has_locations=facts.has_locations)
 
     @property
     def language(self):
@@ -162,17 +163,30 @@ class WorldSpec:
             attrs = np.stack([cell[:, 1] - 1, cell[:, 0] - KIND_KEY, cell[:, 2] - 1, cell[:, 3] - 1], axis=1)
         return np.where(is_object[:, None], attrs, -1)
 
-    def fulfilled_by(self, views, missions) -> np.ndarray:
+    def start_locations(self, frames, actions, view_indices) -> np.ndarray:
+        """(k,) int64 location masks (bit i for babyai_language.LOCS[i]) of the cell the agent faces in each
+        frame `view_indices` of one episode, seen from its start, by dead reckoning from its frames and
+        actions (world/reckoning.py); zeros where missions never name a location (FetchAttr, most levels)."""
+        if not self.has_locations:
+            return np.zeros(len(np.atleast_1d(view_indices)), np.int64)
+        from higher_dist.world.reckoning import start_relative_masks  # imports minigrid: only on such a level
+        return start_relative_masks(frames, actions, view_indices)
+
+    def fulfilled_by(self, views, missions, locations=None) -> np.ndarray:
         """The object a successful episode's mission was fulfilled by, as far as its pair (the view that
         shows the success, the mission) tells, as (n, 4) int64 achieved attributes for `language.satisfies`.
         FetchAttr: the mission names it whole. BabyAI: colour and type of the object in front (a mission may
-        leave them unnamed); its location mask holds the one location the mission names (the object is
-        there, seen from the start; other locations it may also be in are unknown), else -1 (unknown)."""
+        leave them unnamed); its location mask holds the location the mission names (the object is there,
+        seen from the start) and those of `locations` (n,) (the pair's `start_locations`) where given; with
+        neither, -1 (unknown)."""
         named, _ = self.language.parse_many(missions)
         if self.family != "babyai":
             return named
         out = self.front_object(views)
-        out[:, 2] = np.where(named[:, 2] >= 0, 1 << np.maximum(named[:, 2], 0), -1)
+        mask = np.where(named[:, 2] >= 0, 1 << np.maximum(named[:, 2], 0), 0)
+        if locations is not None:
+            mask = mask | np.asarray(locations, dtype=np.int64)
+        out[:, 2] = np.where(mask > 0, mask, -1)
         return out
 
     def pick_reward(self, length) -> np.ndarray:

@@ -104,7 +104,7 @@ def test_dataset_is_fifo_and_its_split_is_stable():
     kept = np.sort(ds.tokens[:, 0])
     assert np.array_equal(kept, np.arange(70, 120))  # the oldest 70 were evicted
     # A pair's split is a function of its insertion number only: stable under eviction and reload.
-    val_views, val_tokens = ds.validation()
+    val_views, val_tokens, _ = ds.validation()
     assert np.array_equal(np.sort(val_tokens[:, 0]),
                           np.arange(70, 120)[validation_flags(np.arange(70, 120), 7, 0.3)])
     state = ds.state_dict()
@@ -119,7 +119,7 @@ def test_dataset_is_fifo_and_its_split_is_stable():
     assert abs(flags.mean() - 0.3) < 0.02
     assert not np.array_equal(flags, validation_flags(np.arange(20_000), 8, 0.3))
     # Training batches never contain validation pairs.
-    views, batch_tokens = ds.sample_train(200, np.random.default_rng(0))
+    views, batch_tokens, _ = ds.sample_train(200, np.random.default_rng(0))
     assert not np.isin(batch_tokens[:, 0], val_tokens[:, 0]).any()
 
 
@@ -187,7 +187,7 @@ def test_greedy_decoding_sees_only_a_few_batch_shapes():
     trainer = GeneratorTrainer(SMALL, seed=0)
     seen = []
     greedy = trainer.model.greedy
-    trainer.model.greedy = lambda views: (seen.append(views.shape[0]), greedy(views))[1]
+    trainer.model.greedy = lambda views, **kw: (seen.append(views.shape[0]), greedy(views, **kw))[1]
     views = np.zeros((EVAL_CHUNK + 37, 7, 7, 4), np.uint8)
     outputs = {}
     for n in (1, 2, 3, 5, 9, 17, 33, 100, EVAL_CHUNK + 37):

@@ -23,6 +23,7 @@ from support.tripwire import PassedAlong
 torch.set_num_threads(1)  # a test shares the machine
 
 GOTO, PICKUP, OPEN = "BabyAI-GoToLocal-v0", "BabyAI-PickupDist-v0", "BabyAI-OpenRedDoor-v0"
+PICKUP_LOC = "BabyAI-PickupLoc-v0"  # its missions may name a location: the generator is told where
 
 
 def level(name: str, n: int, seed: int):
@@ -98,19 +99,24 @@ def test_relabelled_copies_are_never_relabelled_again():
 
 
 def front_describer(spec: WorldSpec, seen: list[np.ndarray]):
-    """A generator that reads only its views: it names the object in front of the agent, as an exact
-    generator would, and records what it was shown."""
+    """A generator that reads only its inputs: it names the object in front of the agent and, where it is
+    told where that object lay seen from the start, the first location that says so, as an exact generator
+    would; it records what it was shown."""
 
-    def generate(views):
+    def generate(views, where=None):
         seen.append(np.array(views))
         attrs = spec.front_object(views)
         attrs[:, 2], attrs[:, 3] = -1, 0
+        if where is not None:
+            where = np.asarray(where)
+            first_bit = np.array([(w & -w).bit_length() - 1 if w else -1 for w in where.tolist()])
+            attrs[:, 2] = first_bit
         return spec.language.mission_tokens(attrs)
 
     return generate
 
 
-@pytest.mark.parametrize("name", [GOTO, PICKUP])
+@pytest.mark.parametrize("name", [GOTO, PICKUP, PICKUP_LOC])
 def test_the_learned_relabeller_describes_the_view_that_shows_each_outcome_and_reads_nothing_else(name, monkeypatch):
     cfg, spec, episodes = (GOTO_CFG, GOTO_SPEC, GOTO_EPISODES) if name == GOTO else level(name, 160, seed=2)
     failed = [ep for ep in episodes if ep.outcome != SUCCESS and ep.pick_step >= 0]
@@ -128,8 +134,12 @@ def test_the_learned_relabeller_describes_the_view_that_shows_each_outcome_and_r
     assert len(seen) == 1 and len(seen[0]) == len(expected) > 10
     np.testing.assert_array_equal(seen[0], np.stack(expected))
     assert any(not (ep.frames[s] == ep.frames[s + 1]).all() for ep in failed for s in ep.outcome_steps())
-    # Those views show what was achieved: an exact describer of them names each outcome's object.
+    # Those views show what was achieved: an exact describer of them names each outcome's object (and on a
+    # level that names locations, one of the locations minigrid's rule gives it, from the reckoned mask).
     assert strategy.metrics()["relabel_accuracy"] == 1.0
+    if spec.has_locations:
+        named = [spec.language.parse(c.mission)[2] for c in copies]
+        assert sum(loc >= 0 for loc in named) > 10
     assert len(copies) + strategy.metrics()["relabel_contradicting"] == len(expected)
 
     # Blind to ground truth: the same missions when what was achieved and the goal cannot be read.

@@ -1,6 +1,7 @@
 """The instruction generator of HIGhER: view before the final pick -> the instruction it fulfilled.
 
-`InstructionGenerator` encodes ONE 7x7x4 view and decodes words with a GRU; `GeneratorTrainer`
+`InstructionGenerator` encodes ONE 7x7x4 view (on a level whose missions name locations, also where the
+object in front lay seen from the start: `WorldSpec.start_locations`) and decodes words with a GRU; `GeneratorTrainer`
 owns the model, its optimizer and its dataset (`generator_data.GeneratorDataset`), trains it by
 teacher-forced cross-entropy, measures validation accuracy semantically (the described object,
 not the surface words) and decides when the generator may be trusted (the gate).
@@ -26,6 +27,7 @@ from higher_dist.learning.hindsight.generator_data import GeneratorDataset, sema
 from higher_dist.learning.networks import ViewEncoder
 from higher_dist.learning.seeds import RelabelerSeeds
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
+from higher_dist.world.babyai_language import LOC_MASKS
 from higher_dist.world.language import BEG, END, PAD
 
 GRAD_CLIP = 5.0  # GRU decoders occasionally spike early in training; clipping keeps Adam steady
@@ -47,6 +49,10 @@ class InstructionGenerator(nn.Module):
     a direct path lets the decoder read each attribute independently of the others, which is what
     makes it describe attribute combinations it never saw (the held-out goals). The conv path still
     sees the whole view (walls, distractors) as in the paper.
+
+    A mission that names a location ("the door on your left") speaks of where the agent started, which
+    no single view shows. On such levels the context also gets an embedding of the front cell's location
+    mask seen from the start (`where`, 0..15), reckoned from the episode's own frames and actions.
     """
 
     def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC):
@@ -58,6 +64,7 @@ class InstructionGenerator(nn.Module):
         self.encoder = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), in_frames=1, spec=spec)
         self.shortcut = bool(cfg.front_cell_shortcut)  # off: the paper's generator, conv features only
         self.context = nn.Linear(self.encoder.out_dim + (cfg.embed_dim if self.shortcut else 0), cfg.hidden)
+        self.where = nn.Embedding(LOC_MASKS, cfg.hidden) if spec.has_locations else None
         self.init_hidden = nn.Linear(cfg.hidden, cfg.hidden)
         self.word_embed = nn.Embedding(vocab_size, cfg.word_embed_dim, padding_idx=PAD)
         # The context is fed at every step as well as through the initial state, so the decoder never
@@ -69,18 +76,23 @@ class InstructionGenerator(nn.Module):
         banned[[PAD, BEG]] = True
         self.register_buffer("banned", banned, persistent=False)
 
-    def encode(self, views: torch.Tensor) -> torch.Tensor:
-        """(B, V, V, 4) integer views -> (B, hidden) context."""
+    def encode(self, views: torch.Tensor, where: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, V, V, 4) integer views (and (B,) location masks where the level names locations; None: 0)
+        -> (B, hidden) context."""
         if views.dim() != 4 or views.shape[1:] != (self.view_size, self.view_size, 4):
             raise ValueError(f"views: expected (B, {self.view_size}, {self.view_size}, 4), got {tuple(views.shape)}")
         stacked = views[:, None]  # a "stack" of one frame, as the encoder takes
         maps = self.encoder(stacked).flatten(1)
-        if not self.shortcut:
-            return F.relu(self.context(maps))
-        r, c = self.front
-        # The front cell through the same (shared) embedding, as a 1x1 view.
-        cell = self.encoder.embed_views(stacked[:, :, r:r + 1, c:c + 1]).flatten(1)
-        return F.relu(self.context(torch.cat([maps, cell], dim=1)))
+        if self.shortcut:
+            r, c = self.front
+            # The front cell through the same (shared) embedding, as a 1x1 view.
+            cell = self.encoder.embed_views(stacked[:, :, r:r + 1, c:c + 1]).flatten(1)
+            maps = torch.cat([maps, cell], dim=1)
+        ctx = self.context(maps)
+        if self.where is not None:
+            ctx = ctx + self.where(torch.zeros_like(views[:, 0, 0, 0], dtype=torch.long) if where is None
+                                   else where.long())
+        return F.relu(ctx)
 
     def _step(self, tokens: torch.Tensor, ctx: torch.Tensor, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Inputs (B, T) tokens -> logits (B, T, vocab) and the new hidden state."""
@@ -88,23 +100,23 @@ class InstructionGenerator(nn.Module):
         out, h = self.gru(x, h)
         return self.out(out), h
 
-    def forward(self, views: torch.Tensor, missions: torch.Tensor) -> torch.Tensor:
+    def forward(self, views: torch.Tensor, missions: torch.Tensor, where: torch.Tensor | None = None) -> torch.Tensor:
         """Teacher-forced logits (B, L+1, vocab) for the targets `w1..wn END` given inputs `BEG w1..wn`."""
-        ctx = self.encode(views)
+        ctx = self.encode(views, where)
         h0 = torch.tanh(self.init_hidden(ctx))[None]
         inputs = torch.cat([torch.full_like(missions[:, :1], BEG), missions], dim=1)
         logits, _ = self._step(inputs, ctx, h0)
         return logits
 
-    def loss(self, views: torch.Tensor, missions: torch.Tensor) -> torch.Tensor:
+    def loss(self, views: torch.Tensor, missions: torch.Tensor, where: torch.Tensor | None = None) -> torch.Tensor:
         """Mean cross-entropy over the real target tokens (words and END; PAD ignored)."""
-        return F.cross_entropy(self(views, missions).flatten(0, 1), decoder_targets(missions).flatten(),
+        return F.cross_entropy(self(views, missions, where).flatten(0, 1), decoder_targets(missions).flatten(),
                                ignore_index=PAD)
 
     @torch.no_grad()
-    def _decode(self, views: torch.Tensor, max_len: int, choose) -> torch.Tensor:
+    def _decode(self, views: torch.Tensor, max_len: int, choose, where: torch.Tensor | None) -> torch.Tensor:
         b = views.shape[0]
-        ctx = self.encode(views)
+        ctx = self.encode(views, where)
         h = torch.tanh(self.init_hidden(ctx))[None]
         token = torch.full((b, 1), BEG, dtype=torch.long, device=views.device)
         words = torch.full((b, max(max_len, self.mission_len)), PAD, dtype=torch.long, device=views.device)
@@ -122,22 +134,23 @@ class InstructionGenerator(nn.Module):
         # An output that never ended is cut to the mission length; the parser judges it.
         return words[:, :self.mission_len]
 
-    def greedy(self, views: torch.Tensor, max_len: int | None = None) -> torch.Tensor:
+    def greedy(self, views: torch.Tensor, max_len: int | None = None, where: torch.Tensor | None = None) -> torch.Tensor:
         """(B, MISSION_LEN) int64 word tokens, PAD-padded; at most `max_len` decoding steps."""
         return self._decode(views, self.cfg.max_len if max_len is None else max_len,
-                            lambda logits: logits.argmax(dim=1))
+                            lambda logits: logits.argmax(dim=1), where)
 
     def sample(self, views: torch.Tensor, max_len: int | None = None,
-               generator: torch.Generator | None = None, temperature: float = 1.0) -> torch.Tensor:
+               generator: torch.Generator | None = None, temperature: float = 1.0,
+               where: torch.Tensor | None = None) -> torch.Tensor:
         """Like `greedy` but each word is drawn from softmax(logits / temperature)."""
         if temperature <= 0:
-            return self.greedy(views, max_len)
+            return self.greedy(views, max_len, where)
 
         def choose(logits: torch.Tensor) -> torch.Tensor:
             probs = torch.softmax(logits / temperature, dim=1)
             return torch.multinomial(probs, 1, generator=generator)[:, 0]
 
-        return self._decode(views, self.cfg.max_len if max_len is None else max_len, choose)
+        return self._decode(views, self.cfg.max_len if max_len is None else max_len, choose, where)
 
 
 def decoder_targets(missions: torch.Tensor) -> torch.Tensor:
@@ -188,9 +201,10 @@ class GeneratorTrainer:
         self.model.train()
         total = 0.0
         for _ in range(n):
-            views, tokens = self.dataset.sample_train(self.cfg.batch_size, self.rng)
+            views, tokens, where = self.dataset.sample_train(self.cfg.batch_size, self.rng)
             loss = self.model.loss(torch.as_tensor(views, device=self.device),
-                                   torch.as_tensor(tokens, device=self.device))
+                                   torch.as_tensor(tokens, device=self.device),
+                                   torch.as_tensor(where, device=self.device))
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             nn.utils.clip_grad_norm_(self.model.parameters(), GRAD_CLIP)
@@ -200,11 +214,13 @@ class GeneratorTrainer:
         self.last_loss = total / n
         return self.last_loss
 
-    def generate(self, views: np.ndarray) -> np.ndarray:
-        """Greedy instructions (N, MISSION_LEN) int64 for (N, V, V, 4) views."""
+    def generate(self, views: np.ndarray, where: np.ndarray | None = None) -> np.ndarray:
+        """Greedy instructions (N, MISSION_LEN) int64 for (N, V, V, 4) views and, on a level whose missions
+        name locations, their (N,) `WorldSpec.start_locations` (None: 0, nowhere known)."""
         views = np.asarray(views)
         if views.shape[0] == 0:
             return np.zeros((0, self.model.mission_len), np.int64)
+        where = np.zeros(len(views), np.int64) if where is None else np.asarray(where, np.int64)
         self.model.eval()
         chunks = []
         for i in range(0, views.shape[0], EVAL_CHUNK):
@@ -213,15 +229,18 @@ class GeneratorTrainer:
             # sees every batch size from 1 up, which grew its memory by ~70 MiB before it levelled off.
             padded = np.zeros((inference_batch(len(chunk)), *chunk.shape[1:]), chunk.dtype)
             padded[: len(chunk)] = chunk
-            out = self.model.greedy(torch.as_tensor(padded, device=self.device)).cpu().numpy()
+            padded_where = np.zeros(len(padded), np.int64)
+            padded_where[: len(chunk)] = where[i:i + EVAL_CHUNK]
+            out = self.model.greedy(torch.as_tensor(padded, device=self.device),
+                                    where=torch.as_tensor(padded_where, device=self.device)).cpu().numpy()
             chunks.append(out[: len(chunk)])
         return np.concatenate(chunks).astype(np.int64)
 
-    def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray) -> dict[str, float]:
+    def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray, where: np.ndarray | None = None) -> dict[str, float]:
         """Semantic accuracy of the greedy outputs on given pairs: do they describe the object the pair's
-        mission was fulfilled by (`WorldSpec.fulfilled_by`)?"""
-        true_attrs = self.spec.fulfilled_by(views, tokens)
-        return semantic_accuracy(self.generate(views), true_attrs, self.language)
+        mission was fulfilled by (`WorldSpec.fulfilled_by`, with the pairs' start locations where known)?"""
+        true_attrs = self.spec.fulfilled_by(views, tokens, where if self.spec.has_locations else None)
+        return semantic_accuracy(self.generate(views, where), true_attrs, self.language)
 
     def evaluate(self) -> dict[str, float]:
         """Accuracy on the validation split; its exact match becomes `val_accuracy` (the gate's input)."""

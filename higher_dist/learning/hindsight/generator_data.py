@@ -1,7 +1,9 @@
 """The instruction generator's dataset and its accuracy measure.
 
 `GeneratorDataset` holds (view, mission) pairs taken from successful episodes only: the view is the
-frame before the final pick, the mission the instruction that pick fulfilled. It is a bounded ring
+frame that shows the success, the mission the instruction it fulfilled. Each pair also keeps where the
+object in front lay seen from the episode's start (`WorldSpec.start_locations`; 0 on levels whose
+missions never name a location). It is a bounded ring
 buffer (FIFO eviction) with a fixed train/validation split.
 
 The split is decided once per pair, when it arrives, by a seeded hash of its insertion number. So a
@@ -40,6 +42,14 @@ def validation_flags(insertion_ids: np.ndarray, seed: int, val_fraction: float) 
     return u < val_fraction
 
 
+def generator_inputs(spec: WorldSpec, ep: Episode, steps) -> tuple[np.ndarray, np.ndarray]:
+    """What the generator reads of the outcomes achieved at `steps` of `ep`: the views that show them
+    (`WorldSpec.outcome_view_offset`) and where the object in front lay seen from the start
+    (`WorldSpec.start_locations`, reckoned from the episode's frames and actions). Never what was achieved."""
+    shown = np.asarray(steps, dtype=np.int64).reshape(-1) + spec.outcome_view_offset
+    return ep.frames[shown], spec.start_locations(ep.frames, ep.actions, shown)
+
+
 class GeneratorDataset:
     def __init__(self, capacity: int, val_fraction: float, seed: int, spec: WorldSpec = DEFAULT_SPEC):
         if capacity < 1:
@@ -47,9 +57,10 @@ class GeneratorDataset:
         if not 0.0 < val_fraction < 1.0:
             raise ValueError(f"val_fraction: must be in (0, 1), got {val_fraction}")
         self.capacity, self.val_fraction, self.seed = int(capacity), float(val_fraction), int(seed)
-        self.view_offset = spec.outcome_view_offset  # which frame shows the success (see WorldSpec)
         self.views = np.zeros((capacity, *spec.view_shape), np.uint8)
         self.tokens = np.zeros((capacity, spec.mission_len), np.int64)
+        self.where = np.zeros(capacity, np.int64)
+        self.spec = spec
         self.is_val = np.zeros(capacity, bool)
         self.inserted = 0  # pairs ever added; also the next pair's insertion number
         self.size = 0
@@ -57,26 +68,30 @@ class GeneratorDataset:
     def __len__(self) -> int:
         return self.size
 
-    def add(self, view: np.ndarray, tokens: np.ndarray) -> None:
-        self.add_many(np.asarray(view)[None], np.asarray(tokens)[None])
+    def add(self, view: np.ndarray, tokens: np.ndarray, where: int = 0) -> None:
+        self.add_many(np.asarray(view)[None], np.asarray(tokens)[None], np.array([where]))
 
-    def add_many(self, views: np.ndarray, tokens: np.ndarray) -> None:
-        """Append pairs in order; the oldest ones are overwritten once the buffer is full."""
+    def add_many(self, views: np.ndarray, tokens: np.ndarray, where: np.ndarray | None = None) -> None:
+        """Append pairs in order (with their start locations; None: 0); the oldest ones are overwritten once
+        the buffer is full."""
         views, tokens = np.asarray(views), np.asarray(tokens)
         n = views.shape[0]
-        if views.shape[1:] != self.views.shape[1:] or tokens.shape != (n, self.tokens.shape[1]):
-            raise ValueError(f"pairs: expected views (n,{self.views.shape[1]},{self.views.shape[2]},4) and "
-                             f"tokens (n,{self.tokens.shape[1]}), got {views.shape} and {tokens.shape}")
+        where = np.zeros(n, np.int64) if where is None else np.asarray(where, np.int64)
+        if views.shape[1:] != self.views.shape[1:] or tokens.shape != (n, self.tokens.shape[1]) or where.shape != (n,):
+            raise ValueError(f"pairs: expected views (n,{self.views.shape[1]},{self.views.shape[2]},4), "
+                             f"tokens (n,{self.tokens.shape[1]}) and where (n,), got {views.shape}, {tokens.shape} "
+                             f"and {where.shape}")
         if n == 0:
             return
         if n > self.capacity:  # only the newest `capacity` pairs would survive anyway
             skip = n - self.capacity
             self.inserted += skip
-            views, tokens, n = views[skip:], tokens[skip:], self.capacity
+            views, tokens, where, n = views[skip:], tokens[skip:], where[skip:], self.capacity
         ids = np.arange(self.inserted, self.inserted + n)
         slots = ids % self.capacity
         self.views[slots] = views
         self.tokens[slots] = tokens
+        self.where[slots] = where
         self.is_val[slots] = validation_flags(ids, self.seed, self.val_fraction)
         self.inserted += n
         self.size = min(self.capacity, self.size + n)
@@ -90,7 +105,8 @@ class GeneratorDataset:
         """
         if ep.outcome != SUCCESS or ep.relabelled or ep.length < 1:
             return False
-        self.add(ep.frames[ep.length - 1 + self.view_offset], ep.mission)
+        views, where = generator_inputs(self.spec, ep, [ep.length - 1])
+        self.add(views[0], ep.mission, int(where[0]))
         return True
 
     def _filled(self) -> np.ndarray:
@@ -107,26 +123,27 @@ class GeneratorDataset:
     def n_train(self) -> int:
         return self.size - self.n_val
 
-    def sample_train(self, batch_size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """A uniform batch (with replacement) of training pairs: (views (b,V,V,4), tokens (b,L))."""
+    def sample_train(self, batch_size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A uniform batch (with replacement) of training pairs: (views (b,V,V,4), tokens (b,L), where (b,))."""
         slots = self._filled()
         train = slots[~self.is_val[slots]]
         if train.size == 0:
             raise ValueError("sample_train: the dataset holds no training pairs yet")
         pick = train[rng.integers(0, train.size, size=batch_size)]
-        return self.views[pick], self.tokens[pick]
+        return self.views[pick], self.tokens[pick], self.where[pick]
 
-    def validation(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every validation pair currently held, oldest first (copies)."""
+    def validation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every validation pair currently held, oldest first (copies): views, tokens, where."""
         slots = self._filled()
         val = slots[self.is_val[slots]]
-        return self.views[val].copy(), self.tokens[val].copy()
+        return self.views[val].copy(), self.tokens[val].copy(), self.where[val].copy()
 
     def state_dict(self) -> dict[str, Any]:
         slots = self._filled()
         return {"capacity": self.capacity, "val_fraction": self.val_fraction, "seed": self.seed,
                 "inserted": self.inserted, "views": self.views[slots].copy(),
-                "tokens": self.tokens[slots].copy(), "is_val": self.is_val[slots].copy()}
+                "tokens": self.tokens[slots].copy(), "where": self.where[slots].copy(),
+                "is_val": self.is_val[slots].copy()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if int(state["capacity"]) != self.capacity:
@@ -138,11 +155,13 @@ class GeneratorDataset:
         self.size = n
         self.views[:] = 0
         self.tokens[:] = 0
+        self.where[:] = 0
         self.is_val[:] = False
         # Put the pairs back at the slots their insertion numbers map to, so that further adds
         # evict them in the same order as before the checkpoint.
         slots = np.arange(self.inserted - n, self.inserted) % self.capacity
         self.views[slots], self.tokens[slots], self.is_val[slots] = views, tokens, is_val
+        self.where[slots] = state.get("where", 0)  # a checkpoint that holds no locations: all 0
 
 
 def semantic_accuracy(pred_tokens: np.ndarray, true_attrs: np.ndarray, language=fetchattr_language) -> dict[str, float]:

@@ -30,6 +30,7 @@ from higher_dist import metrics as m
 from higher_dist.config import RELABEL_STRATEGIES, Config, GeneratorConfig, RelabelConfig
 from higher_dist.learning.episode import SUCCESS, Episode
 from higher_dist.learning.hindsight.generator import GeneratorTrainer
+from higher_dist.learning.hindsight.generator_data import generator_inputs
 from higher_dist.learning.seeds import RelabelerSeeds
 from higher_dist.world.language import noisy_attrs
 from higher_dist.world.objects import ObjectSpace
@@ -227,9 +228,9 @@ class LearnedRelabel(RelabelStrategy):
             self.gated_off += len(candidates)
             return []
         candidates = self._outcomes(candidates)
-        offset = self.spec.outcome_view_offset
-        views = np.stack([o.episode.frames[o.step + offset] for o in candidates])
-        tokens = self.trainer.generate(views)
+        inputs = [generator_inputs(self.spec, o.episode, [o.step]) for o in candidates]
+        views = np.concatenate([v for v, _ in inputs])
+        tokens = self.trainer.generate(views, np.concatenate([w for _, w in inputs]))
         attrs, ok = self.language.parse_many(tokens)
         self.unparseable += int((~ok).sum())
         kept = np.flatnonzero(ok)
