@@ -220,7 +220,7 @@ def test_babyai_panel_of_a_time_out_after_a_pickup_names_the_relabel(babyai_run)
     learned = AgentBuilder(make_config("higher", LEVEL)).relabel_strategy()
     seen = []
     generate = learned.trainer.generate
-    learned.trainer.generate = lambda views: seen.append(views.copy()) or generate(views)
+    learned.trainer.generate = lambda views, where=None: seen.append(views.copy()) or generate(views, where)
     text = render.relabel_text(learned, "gate closed", failed, rng, spec)
     assert text.startswith('generator: "') and text.endswith("[gate closed]"), text
     np.testing.assert_array_equal(seen[0][0], failed.frames[failed.pick_step])
