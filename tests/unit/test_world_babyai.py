@@ -28,6 +28,9 @@ def test_level_facts_and_pickup_levels():
     assert (facts.view_size, facts.max_steps, facts.n_actions) == (7, 49, 7)
     assert not facts.has_locations
     assert level_facts("BabyAI-PickupLoc-v0").has_locations
+    # Levels that are not level generators are probed: OpenDoorLoc always names a location, OpenDoor sometimes.
+    assert level_facts("BabyAI-OpenDoorLoc-v0").has_locations and level_facts("BabyAI-OpenDoor-v0").has_locations
+    assert not level_facts("BabyAI-OpenDoorColor-v0").has_locations and not level_facts("BabyAI-GoToLocal-v0").has_locations
     levels = pickup_levels()
     for name in ("BabyAI-PickupDist-v0", "BabyAI-Pickup-v0", "BabyAI-PickupLoc-v0", "BabyAI-UnblockPickup-v0",
                  "BabyAI-PickupAbove-v0", "BabyAI-UnlockPickup-v0"):
