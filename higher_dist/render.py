@@ -171,7 +171,7 @@ def relabel_text(strategy, note: str, ep: Episode, rng: np.random.Generator, spe
         return (f"generator: \"{text}\"" + ("" if words.parse(tokens) is not None else " (unparseable: dropped)")
                 + f" [{note}]")
     if strategy.name == "expert":
-        return f"expert: \"{words.decode(words.expert_tokens(np.asarray(ep.picked)[None], rng)[0])}\""
+        return f"expert: \"{words.decode(spec.expert_tokens(np.asarray(ep.picked)[None], rng)[0])}\""
     copies = strategy.relabel([ep])
     return f"noisy expert: \"{words.decode(copies[0].mission)}\"" if copies else ""
 

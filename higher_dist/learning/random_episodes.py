@@ -47,6 +47,6 @@ def real_episodes(world: WorldConfig, n: int, seed: int = 0, relabelled: bool = 
         ep = pool.pop()
         out.append(ep)
         if relabelled and _kind(ep) == "picked" and len(out) < n:
-            mission = spec.language.expert_tokens(ep.picked[None], rng)[0]
+            mission = spec.expert_tokens(ep.picked[None], rng)[0]
             out.append(ep.relabel(mission, float(spec.pick_reward(ep.pick_step + 1))))
     return out

@@ -142,12 +142,23 @@ class BabyAILanguage:
             out[row, : len(ids)] = ids
         return out
 
-    def expert_tokens(self, achieved, rng: np.random.Generator | None = None) -> np.ndarray:
-        """The hindsight expert: "VERB {the|a} {color} {type}" for achieved outcomes' objects `(n, 4)`.
-        The location is never named (it is relative to the agent's start, which no view before the
-        outcome shows); `rng` is unused, kept for the FetchAttr language's signature."""
+    def expert_tokens(self, achieved, rng: np.random.Generator | None = None,
+                      name_location: bool = False) -> np.ndarray:
+        """The hindsight expert: "VERB {the|a} {color} {type}" for achieved outcomes' objects `(n, 4)`, with
+        the article the outcome recorded for its colour and type. name_location (a level whose missions name
+        locations): add "LOC" (one of the locations the object's mask holds, drawn from `rng`) wherever one
+        describes it; a location only narrows the description, so "the" stays right, while an "a" the level
+        might have said as "the" stays "a". Without it `rng` is unused (kept for FetchAttr's signature)."""
         a = np.array(np.asarray(achieved, dtype=np.int64).reshape(-1, 4))
+        masks = a[:, 2].tolist()
         a[:, 2] = -1
+        if name_location:
+            if rng is None:
+                raise ValueError("expert_tokens: naming a location draws from an rng; none given")
+            for row, mask in enumerate(masks):
+                held = [bit for bit in range(len(LOCS)) if mask > 0 and mask >> bit & 1]
+                if held:
+                    a[row, 2] = held[int(rng.integers(len(held)))]
         return self.mission_tokens(a)
 
     def describe(self, attrs, rng: np.random.Generator | None = None) -> str:

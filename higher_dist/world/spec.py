@@ -163,6 +163,13 @@ class WorldSpec:
             attrs = np.stack([cell[:, 1] - 1, cell[:, 0] - KIND_KEY, cell[:, 2] - 1, cell[:, 3] - 1], axis=1)
         return np.where(is_object[:, None], attrs, -1)
 
+    def expert_tokens(self, achieved, rng: np.random.Generator) -> np.ndarray:
+        """The hindsight expert's missions for achieved outcomes `(n, 4)`: the language's, naming a location
+        as well on a level whose missions may name one (the outcome's location mask says which hold)."""
+        if self.has_locations:
+            return self.language.expert_tokens(achieved, rng, name_location=True)
+        return self.language.expert_tokens(achieved, rng)
+
     def start_locations(self, frames, actions, view_indices) -> np.ndarray:
         """(k,) int64 location masks (bit i for babyai_language.LOCS[i]) of the cell the agent faces in each
         frame `view_indices` of one episode, seen from its start, by dead reckoning from its frames and

@@ -75,6 +75,30 @@ def test_the_expert_makes_one_copy_per_chosen_distinct_outcome(most):
         assert not ep.relabelled and ep.outcome == TIMEOUT  # the original is untouched
 
 
+def test_on_a_level_that_names_locations_the_expert_names_one_the_object_is_in():
+    cfg, spec, episodes = level(PICKUP_LOC, 160, seed=4)
+    failed = [ep for ep in episodes if ep.outcome != SUCCESS and ep.pick_step >= 0]
+    strategy = ExpertRelabel(seed=0, spec=spec, max_per_episode=8)
+    copies = strategy.relabel(episodes)
+    assert len(copies) == sum(ep.n_outcomes for ep in failed) > 10
+    assert strategy.metrics()["relabel_accuracy"] == 1.0
+    named = []
+    for copy in copies:
+        ep = failed[owner(copy, failed)]
+        truth = ep.outcome_attrs(ep.outcome_steps().index(copy.pick_step))
+        described = spec.language.parse(copy.mission)
+        assert (described[:2] == truth[:2]).all() and described[3] == truth[3]  # colour, type, the article
+        if truth[2] > 0:  # a location describes the object: one it is in is named
+            assert described[2] >= 0 and truth[2] >> described[2] & 1
+            named.append(int(described[2]))
+        else:
+            assert described[2] == -1
+    assert len(named) > 10 and len(set(named)) >= 3
+    # Which of the object's locations is named comes from the relabeler's seeded stream.
+    again = ExpertRelabel(seed=0, spec=spec, max_per_episode=8).relabel(episodes)
+    assert [c.mission.tolist() for c in again] == [c.mission.tolist() for c in copies]
+
+
 def test_the_choice_beyond_the_limit_is_reproducible_for_a_seed_and_differs_across_seeds():
     def chosen(seed: int) -> list[tuple[int, int]]:
         copies = ExpertRelabel(seed=seed, spec=GOTO_SPEC, max_per_episode=1).relabel(GOTO_EPISODES)

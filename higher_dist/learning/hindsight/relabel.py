@@ -155,7 +155,8 @@ class RelabelStrategy:
 
 
 class ExpertRelabel(RelabelStrategy):
-    """HER with an expert: describe the object actually picked, with a random prefix and word order."""
+    """HER with an expert: describe the object actually achieved (FetchAttr: with a random prefix and word order;
+    a BabyAI level whose missions name locations: with one of the locations the object is in)."""
 
     name = "expert"
 
@@ -171,8 +172,8 @@ class ExpertRelabel(RelabelStrategy):
         if not candidates:
             return []
         attrs = self._attrs_for(np.stack([o.attrs for o in candidates]))  # the expert reads the truth by design
-        tokens = self.language.expert_tokens(attrs, self.rng)
-        described, _ = self.language.parse_many(tokens)  # what the sentences say (BabyAI: no location)
+        tokens = self.spec.expert_tokens(attrs, self.rng)
+        described, _ = self.language.parse_many(tokens)  # what the sentences say
         keep = self._not_contradicting(candidates, described)
         candidates, described, tokens = [candidates[i] for i in keep], described[keep], tokens[keep]
         self._score(candidates, described)
