@@ -27,7 +27,8 @@ from higher_dist.world.spec import MAX_LATER, MAX_OUTCOMES, RUNNING, SUCCESS, TI
 PICKUP, DROP, TOGGLE = (BABYAI_ACTION_NAMES.index(a) for a in ("pickup", "drop", "toggle"))
 INSTR = {"go to": GoToInstr, "open": OpenInstr, "pick up": PickupInstr}
 VERB_OF_KIND = {"goto": "go to", "open": "open", "pickup": "pick up"}
-SENTENCE = re.compile(r"(go to|open|pick up) (the|a) (\w+) (\w+)")
+SENTENCE = re.compile(r"(go to|open|pick up) (the|a) (\w+) (\w+)(?: (on your left|on your right|in front of you|behind you))?")
+LOC_OF_PHRASE = dict(zip(lang.LOC_PHRASES, lang.LOCS))
 
 # Random policies (left, right, forward, pickup, drop, toggle, done), biased towards the family's achieving
 # action where it would act on something: toggle facing a closed door, pick up facing an object, drop while
@@ -108,7 +109,7 @@ def verifier_of(kind_verb: str, type_: str, color: str, loc: str | None, env):
     return verifier
 
 
-def check_episode(kind: str, start, actions, result, i: int, spec, tally, cap: int = MAX_OUTCOMES) -> None:
+def check_episode(kind: str, start, actions, result, i: int, spec, tally, rng, cap: int = MAX_OUTCOMES) -> None:
     verb = VERB_OF_KIND[kind]
     recorded = recorded_outcomes(result, i)
     steps = [s for s, _ in recorded]
@@ -121,16 +122,19 @@ def check_episode(kind: str, start, actions, result, i: int, spec, tally, cap: i
     # The replay needs the env's state and verifiers only: skipping the observation halves its cost.
     env.gen_obs = lambda: None
     with contextlib.redirect_stdout(io.StringIO()):
-        # The expert's sentences, read as text: the verifier each one names, and its article at the reset.
+        # The expert's sentences, read as text: the verifier each one names (with the location it names on a
+        # level that asks with locations), and its article at the reset (the level's for colour and type).
         described = []
-        for _, attrs in recorded:
-            text = lang.decode(spec.language.expert_tokens(np.array([attrs]))[0])
+        texts = [lang.decode(t) for t in spec.expert_tokens(np.array([a for _, a in recorded], ndmin=2), rng)]
+        for (_, attrs), text in zip(recorded, texts):
             match = SENTENCE.fullmatch(text)
             assert match is not None and match[1] == verb, (text, kind)
-            _, article, color, type_ = match.groups()
+            _, article, color, type_, phrase = match.groups()
             assert ObjDesc(type_, color).surface(env).split()[0] == article == lang.ARTICLES[attrs[3]], text
             assert (lang.COLORS.index(color), lang.TYPES.index(type_)) == attrs[:2]
-            described.append(verifier_of(verb, type_, color, None, env))
+            assert (phrase is not None) == (spec.has_locations and attrs[2] > 0), (text, attrs)
+            tally["named_loc"] += phrase is not None
+            described.append(verifier_of(verb, type_, color, LOC_OF_PHRASE.get(phrase), env))
         # Location mask: bit j set exactly when "VERB ... LOCS[j]" names the achieved object (its own verifier
         # accepts the outcome's step).
         located = [[verifier_of(verb, lang.TYPES[a[1]], lang.COLORS[a[0]], loc, env) for loc in lang.LOCS]
@@ -191,13 +195,16 @@ def test_recorded_outcomes_are_exactly_what_minigrids_verifiers_accept(level, n_
     kind = spec.level_kind
     seed = [row[0] for row in LEVELS].index(level)
     episodes = run_episodes(level, n_episodes, max_steps, kind, seed)
-    tally = dict.fromkeys(("outcomes", "multi", "success", "timeout", "capped", "loc_bits"), 0)
+    tally = dict.fromkeys(("outcomes", "multi", "success", "timeout", "capped", "loc_bits", "named_loc"), 0)
+    rng = np.random.default_rng(seed)
     for start, actions, result, i in episodes:
-        check_episode(kind, start, actions, result, i, spec, tally)
+        check_episode(kind, start, actions, result, i, spec, tally, rng)
     assert len(episodes) == n_episodes
     assert tally["outcomes"] >= min_outcomes and tally["multi"] >= min_multi, tally
     assert tally["success"] >= 5 and tally["timeout"] >= 5, tally
     assert tally["loc_bits"] >= 1, tally
+    # The expert names a location where the level's missions may (and one describes the object), else never.
+    assert tally["named_loc"] >= tally["outcomes"] // 2 if spec.has_locations else tally["named_loc"] == 0, tally
 
 
 def test_outcomes_beyond_the_cap_are_not_recorded(monkeypatch):
@@ -206,7 +213,8 @@ def test_outcomes_beyond_the_cap_are_not_recorded(monkeypatch):
     monkeypatch.setattr(babyai, "MAX_OUTCOMES", 2)
     level = "BabyAI-GoToLocal-v0"
     spec = WorldSpec.of(make_config("her", level).world)
-    tally = dict.fromkeys(("outcomes", "multi", "success", "timeout", "capped", "loc_bits"), 0)
+    tally = dict.fromkeys(("outcomes", "multi", "success", "timeout", "capped", "loc_bits", "named_loc"), 0)
+    rng = np.random.default_rng(99)
     for start, actions, result, i in run_episodes(level, 100, 40, "goto", seed=99):
-        check_episode("goto", start, actions, result, i, spec, tally, cap=2)
+        check_episode("goto", start, actions, result, i, spec, tally, rng, cap=2)
     assert tally["capped"] >= 5 and tally["multi"] >= 20, tally
