@@ -3,10 +3,11 @@ verifiers on thousands of random episodes per family (go-to, open, pickup).
 
 Each episode is replayed from a deep copy of its env taken right after its reset. The expert's sentence for
 each recorded outcome is read back as text and turned into a fresh `GoToInstr` / `OpenInstr` / `PickupInstr`
-of `ObjDesc(type, color, loc)` (loc: the location it names, on levels whose missions name one); stepped on the replay as the level steps its own verifier, its first accepted step
-must be the recorded one. Conversely every description the level's objects allow whose verifier accepts some
-step (a go-to only while the object is in front) must have been recorded at its first such step (up to the
-first MAX_OUTCOMES). Neither direction reads the world's own verifiers.
+of `ObjDesc(type, color, loc)` (loc: the location it names, on levels whose missions name one); stepped on
+the replay as the level steps its own verifier, its first accepted step must be the recorded one.
+Conversely every description the level's objects allow whose verifier accepts some step (a go-to only while
+the object is in front) must have been recorded at its first such step (up to the first MAX_OUTCOMES).
+Neither direction reads the world's own verifiers.
 """
 from __future__ import annotations
 
