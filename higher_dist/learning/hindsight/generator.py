@@ -239,7 +239,7 @@ class GeneratorTrainer:
     def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray, where: np.ndarray | None = None) -> dict[str, float]:
         """Semantic accuracy of the greedy outputs on given pairs: do they describe the object the pair's
         mission was fulfilled by (`WorldSpec.fulfilled_by`, with the pairs' start locations where known)?"""
-        true_attrs = self.spec.fulfilled_by(views, tokens, where if self.spec.has_locations else None)
+        true_attrs = self.spec.fulfilled_by(views, tokens, where)
         return semantic_accuracy(self.generate(views, where), true_attrs, self.language)
 
     def evaluate(self) -> dict[str, float]:

@@ -21,6 +21,7 @@ relabels are made and is never fed back into training. `relabel_accuracy` is ove
 """
 from __future__ import annotations
 
+import itertools
 from collections import deque
 from typing import Any
 
@@ -229,7 +230,9 @@ class LearnedRelabel(RelabelStrategy):
             self.gated_off += len(candidates)
             return []
         candidates = self._outcomes(candidates)
-        inputs = [generator_inputs(self.spec, o.episode, [o.step]) for o in candidates]
+        # One reckoning per episode for all of its chosen outcomes (they are consecutive, in step order).
+        by_episode = [list(group) for _, group in itertools.groupby(candidates, key=lambda o: id(o.episode))]
+        inputs = [generator_inputs(self.spec, group[0].episode, [o.step for o in group]) for group in by_episode]
         views = np.concatenate([v for v, _ in inputs])
         tokens = self.trainer.generate(views, np.concatenate([w for _, w in inputs]))
         attrs, ok = self.language.parse_many(tokens)
