@@ -44,11 +44,12 @@ class InstructionGenerator(nn.Module):
     """Conv encoder of one view + GRU decoder over the vocabulary.
 
     The encoder is the Q-network's `ViewEncoder` (per-channel embeddings summed, then 3x3 convs).
-    Besides the conv features, the summed embedding of the front cell is fed straight into the
-    context vector: the object to describe is always there, and giving its additive attribute code
-    a direct path lets the decoder read each attribute independently of the others, which is what
-    makes it describe attribute combinations it never saw (the held-out goals). The conv path still
-    sees the whole view (walls, distractors) as in the paper.
+    Besides the conv features, the front cell's per-channel embeddings (the same table's rows, one per
+    channel, side by side rather than summed) are fed straight into the context vector: the object to
+    describe is always there, and a direct path that keeps its attributes apart lets the decoder read
+    each one independently of the others, which is what makes it describe attribute combinations it
+    never saw (the held-out goals) and learn from few pairs (docs/decisions.md, "The generator sees the
+    cell in front"). The conv path still sees the whole view (walls, distractors) as in the paper.
 
     A mission that names a location ("the door on your left") speaks of where the agent started, which
     no single view shows. On such levels the context also gets an embedding of the front cell's location
@@ -63,7 +64,11 @@ class InstructionGenerator(nn.Module):
         self.front = front_cell(spec.view_size)
         self.encoder = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), in_frames=1, spec=spec)
         self.shortcut = bool(cfg.front_cell_shortcut)  # off: the paper's generator, conv features only
-        self.context = nn.Linear(self.encoder.out_dim + (cfg.embed_dim if self.shortcut else 0), cfg.hidden)
+        channels = len(spec.channel_values)
+        self.context = nn.Linear(self.encoder.out_dim + (channels * cfg.embed_dim if self.shortcut else 0), cfg.hidden)
+        # Row offset of each channel's values in the encoder's embedding table (kind, color, shade, size).
+        offsets = np.concatenate([[0], np.cumsum(spec.channel_values)[:-1]])
+        self.register_buffer("channel_offsets", torch.as_tensor(offsets, dtype=torch.long), persistent=False)
         self.where = nn.Embedding(LOC_MASKS, cfg.hidden) if spec.has_locations else None
         self.init_hidden = nn.Linear(cfg.hidden, cfg.hidden)
         self.word_embed = nn.Embedding(vocab_size, cfg.word_embed_dim, padding_idx=PAD)
@@ -85,8 +90,9 @@ class InstructionGenerator(nn.Module):
         maps = self.encoder(stacked).flatten(1)
         if self.shortcut:
             r, c = self.front
-            # The front cell through the same (shared) embedding, as a 1x1 view.
-            cell = self.encoder.embed_views(stacked[:, :, r:r + 1, c:c + 1]).flatten(1)
+            # The front cell's channel values through the same (shared) table, one row per channel.
+            rows = views[:, r, c, :].long() + self.channel_offsets
+            cell = F.embedding(rows, self.encoder.embed.weight).flatten(1)
             maps = torch.cat([maps, cell], dim=1)
         ctx = self.context(maps)
         if self.where is not None:
