@@ -197,3 +197,23 @@ def test_greedy_decoding_sees_only_a_few_batch_shapes():
     assert len(set(seen)) <= 8 and all(s >= 8 for s in seen)  # 8, 16, ..., 1024 at most
     # Padding does not change what a view decodes to.
     assert np.array_equal(outputs[3], outputs[100][:3])
+
+
+def test_the_front_cell_shortcut_gives_each_channel_its_own_embedding_row():
+    """The context reads the front cell's kind, colour, shade and size side by side (not summed): two
+    cells whose summed codes could coincide stay apart, and one channel's change moves one slice only."""
+    gen = InstructionGenerator(GeneratorConfig(embed_dim=4))
+    captured = {}
+    gen.context.register_forward_hook(lambda module, args, out: captured.setdefault("x", args[0].detach()))
+    views, _, _ = make_pairs(WorldConfig(), 2, "train", np.random.default_rng(0))
+    views = torch.as_tensor(views[:1]).repeat(2, 1, 1, 1)
+    r, c = gen.front
+    views[1, r, c, 2] = (views[0, r, c, 2] + 1) % 5  # another shade, same kind, colour and size
+    gen.encode(views)
+    cell = captured["x"][:, gen.encoder.out_dim:]
+    assert cell.shape == (2, 4 * 4)
+    table = gen.encoder.embed.weight.detach()
+    rows = views[:, r, c, :].long() + gen.channel_offsets
+    assert torch.allclose(cell, table[rows].flatten(1))
+    changed = (cell[0] != cell[1]).reshape(4, 4).any(dim=1)
+    assert changed.tolist() == [False, False, True, False]

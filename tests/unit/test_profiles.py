@@ -53,7 +53,8 @@ def test_generator_without_the_front_cell_shortcut_reads_conv_features_only():
     with_cut = InstructionGenerator(make_config("higher", "paper").generator)
     without = InstructionGenerator(cfg)
     assert without.context.in_features == without.encoder.out_dim
-    assert with_cut.context.in_features == with_cut.encoder.out_dim + with_cut.cfg.embed_dim
+    # The shortcut: one embedding row per channel of the front cell (kind, color, shade, size), side by side.
+    assert with_cut.context.in_features == with_cut.encoder.out_dim + 4 * with_cut.cfg.embed_dim
     # It still learns: the loss falls on a few hundred pairs (a check of the path, not of accuracy;
     # a narrow generator keeps it cheap).
     narrow = replace(cfg, embed_dim=4, conv_channels=(8, 8), word_embed_dim=8, hidden=32, lr=3e-3, batch_size=32)
