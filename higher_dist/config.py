@@ -140,7 +140,7 @@ class GeneratorConfig:
     capacity: int = 20_000  # (observation, instruction) pairs kept, FIFO
     val_fraction: float = 0.1  # pairs held out to measure the generator (the gate's input)
     n_min: int = 1000  # gate: pairs needed before relabelling (paper: 1000)
-    front_cell_shortcut: bool = True  # feed the cell in front's embedding straight to the decoder
+    front_cell_shortcut: bool = True  # feed the front cell's channel embeddings, side by side, straight to the decoder
     min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
     updates_per_kframe: float = 10.0  # generator updates per 1000 env frames of original episodes
     eval_every_updates: int = 200  # validation exact match (the gate's input) every this many updates

@@ -99,7 +99,11 @@ class LearnerService:
         state = self.rd.load_checkpoint("learner")
         if state is None:
             raise ValueError(f"--resume: no learner checkpoint in {self.rd.path}")
-        self.core.load_state_dict(state["core"])
+        try:
+            self.core.load_state_dict(state["core"])
+        except RuntimeError as e:  # torch's shape mismatch: a checkpoint of another version's network
+            raise ValueError(f"--resume: {self.rd.checkpoint_path('learner')} does not fit this version's "
+                             f"network, start a new run ({str(e).splitlines()[-1].strip()})") from None
         self.weights_version = int(state["weights_version"])
         torch.set_rng_state(state["torch_rng"])
         # The run's clock goes on from the checkpoint's running time: a curve's minutes stay the run's own,

@@ -88,16 +88,27 @@ class RelabelerService:
 DEFAULT_STATE_DIR = Path("runs") / "relabeler"  # its checkpoint without --state-dir (named in its --help)
 
 
+def restore(service: RelabelerService, rd: RunDir) -> bool:
+    """Load the run directory's relabeler checkpoint into `service`; False when there is none. A checkpoint
+    whose generator has other shapes (another version's) is refused with a ValueError naming the file."""
+    state = rd.load_checkpoint("relabeler")
+    if state is None:
+        return False
+    try:
+        service.load_state_dict(state)
+    except RuntimeError as e:  # torch's size mismatch
+        raise ValueError(f"--resume: {rd.checkpoint_path('relabeler')} does not fit this version's generator, "
+                         f"start a new run ({str(e).splitlines()[-1].strip()})") from None
+    return True
+
+
 def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = False, bind_host: str | None = None,
                   security: Security | None = None, threads: int | None = None, advertise: str | None = None) -> int:
     client, cfg, endpoints, stop = start_role(learner, "relabeler", 0, security, threads)
     service = RelabelerService(AgentBuilder(cfg), client.rejects)
     rd = RunDir(state_dir or DEFAULT_STATE_DIR)
-    if resume:
-        state = rd.load_checkpoint("relabeler")
-        if state is not None:
-            service.load_state_dict(state)
-            log.info("resumed the relabeler's generator and dataset from %s", rd.checkpoint_path("relabeler"))
+    if resume and restore(service, rd):
+        log.info("resumed the relabeler's generator and dataset from %s", rd.checkpoint_path("relabeler"))
     ctx = zmq.Context.instance()
     episodes_endpoint = advertise or endpoints.episodes
     # A CURVE server of its own: the security object starts this process's authenticator on first bind.

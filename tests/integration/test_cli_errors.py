@@ -111,6 +111,25 @@ def test_learner_resume_without_a_checkpoint_is_refused(tmp_path):
     assert not (empty / "learner.ckpt").exists() and not (empty / "config.json").exists()
 
 
+def test_learner_resume_of_a_checkpoint_of_other_shapes_is_refused(tmp_path):
+    """A learner.ckpt whose network has other shapes (another version's) is refused by name, no traceback."""
+    import torch
+
+    from higher_dist.config_presets import make_config
+    from higher_dist.learning.agent import AgentBuilder
+    from higher_dist.rundir import RunDir
+
+    rd = RunDir(tmp_path / "run")
+    rd.write_config(make_config("dqn", "small"))
+    other = AgentBuilder(make_config("dqn", "small", **{"network.hidden": 32})).learner()
+    rd.save_checkpoint("learner", {"core": other.state_dict(with_replay=False), "weights_version": 0,
+                                   "torch_rng": torch.get_rng_state(), "elapsed_s": 0.0})
+    p = run("learner", "--resume", "--run-dir", rd.path, "--port-base", free_base_port(), cwd=tmp_path)
+    assert p.returncode == 2, (p.returncode, p.stdout, p.stderr)
+    assert "higher-learner: error: --resume" in p.stderr and "learner.ckpt does not fit this version's network" in p.stderr
+    assert "Traceback" not in p.stderr
+
+
 def test_plot_of_an_empty_directory_is_refused(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
