@@ -72,6 +72,16 @@ class RunDir:
         return _from_tensors(torch.load(path, map_location="cpu", weights_only=True))
 
 
+def load_or_refuse(path: Path, what: str, load: Callable[[], None]) -> None:
+    """Run `load` (a load_state_dict of a checkpoint read from `path`); torch's refusal of other shapes or
+    names (a checkpoint of another version's `what`) becomes a ValueError that names the file."""
+    try:
+        load()
+    except RuntimeError as e:
+        raise ValueError(f"--resume: {path} does not fit this version's {what}, start a new run "
+                         f"({str(e).splitlines()[-1].strip()})") from None
+
+
 def read_metrics(path: str | os.PathLike) -> list[dict[str, Any]]:
     """Every complete JSON line of a metrics file (a torn last line from a crash is skipped)."""
     out = []

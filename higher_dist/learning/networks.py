@@ -109,6 +109,9 @@ class ViewEncoder(nn.Module):
         self.cell_radix = tuple(int(np.prod(self.channel_values[i + 1:])) for i in range(len(self.channel_values)))
         # Rows: kind values, then color, shade and size values (offsets 0, 5, 12, 18).
         self.embed = nn.Embedding(sum(self.channel_values), embed_dim)
+        # Not persistent either: the first row of each channel's values in `embed`.
+        offsets = np.concatenate([[0], np.cumsum(self.channel_values)[:-1]])
+        self.register_buffer("channel_offsets", torch.as_tensor(offsets, dtype=torch.long), persistent=False)
         # Not persistent: a constant of the encoding, not a weight to publish or checkpoint.
         self.register_buffer("channel_max", torch.tensor(spec.channel_max, dtype=torch.uint8), persistent=False)
         convs = []
@@ -136,6 +139,11 @@ class ViewEncoder(nn.Module):
         table = (kind[:, None, None, None] + color[None, :, None, None]
                  + shade[None, None, :, None] + size[None, None, None, :])
         return table.reshape(self.cell_codes, self.embed_dim)
+
+    def channel_embeddings(self, cells: torch.Tensor) -> torch.Tensor:
+        """(B, channels) integer cells -> (B, channels * E): each channel's own row of the table, side by
+        side rather than summed (the generator's front-cell shortcut)."""
+        return F.embedding(cells.long() + self.channel_offsets, self.embed.weight).flatten(1)
 
     def check_views(self, views: torch.Tensor) -> None:
         """ValueError unless `views` is (B, k, V, V, 4) of integers within each channel's range."""

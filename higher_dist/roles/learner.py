@@ -44,7 +44,7 @@ from higher_dist.roles.control_server import ControlServer
 from higher_dist.roles.evaluator import BackgroundEvaluator
 from higher_dist.roles.loop import Every, HandlerGuard, internal, stop_on_internal_error
 from higher_dist.roles.registry import RateMeter, RoleRegistry
-from higher_dist.rundir import RunDir, plain_record
+from higher_dist.rundir import RunDir, load_or_refuse, plain_record
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.episodes import unpack_episodes
 from higher_dist.wire.security import Security
@@ -99,11 +99,7 @@ class LearnerService:
         state = self.rd.load_checkpoint("learner")
         if state is None:
             raise ValueError(f"--resume: no learner checkpoint in {self.rd.path}")
-        try:
-            self.core.load_state_dict(state["core"])
-        except RuntimeError as e:  # torch's shape mismatch: a checkpoint of another version's network
-            raise ValueError(f"--resume: {self.rd.checkpoint_path('learner')} does not fit this version's "
-                             f"network, start a new run ({str(e).splitlines()[-1].strip()})") from None
+        load_or_refuse(self.rd.checkpoint_path("learner"), "network", lambda: self.core.load_state_dict(state["core"]))
         self.weights_version = int(state["weights_version"])
         torch.set_rng_state(state["torch_rng"])
         # The run's clock goes on from the checkpoint's running time: a curve's minutes stay the run's own,

@@ -27,7 +27,7 @@ from higher_dist.launch.channels import open_channel
 from higher_dist.learning.agent import AgentBuilder, train_generator
 from higher_dist.roles.client import start_role
 from higher_dist.roles.loop import Every, HandlerGuard, internal, stop_on_internal_error
-from higher_dist.rundir import RunDir, plain_record
+from higher_dist.rundir import RunDir, load_or_refuse, plain_record
 from higher_dist.wire import codec, sockets
 from higher_dist.wire.episodes import pack_episodes, unpack_episodes
 from higher_dist.wire.security import Security
@@ -94,11 +94,7 @@ def restore(service: RelabelerService, rd: RunDir) -> bool:
     state = rd.load_checkpoint("relabeler")
     if state is None:
         return False
-    try:
-        service.load_state_dict(state)
-    except RuntimeError as e:  # torch's size mismatch
-        raise ValueError(f"--resume: {rd.checkpoint_path('relabeler')} does not fit this version's generator, "
-                         f"start a new run ({str(e).splitlines()[-1].strip()})") from None
+    load_or_refuse(rd.checkpoint_path("relabeler"), "generator", lambda: service.load_state_dict(state))
     return True
 
 

@@ -213,7 +213,7 @@ def test_the_front_cell_shortcut_gives_each_channel_its_own_embedding_row():
     cell = captured["x"][:, gen.encoder.out_dim:]
     assert cell.shape == (2, 4 * 4)
     table = gen.encoder.embed.weight.detach()
-    rows = views[:, r, c, :].long() + gen.channel_offsets
+    rows = views[:, r, c, :].long() + gen.encoder.channel_offsets
     assert torch.allclose(cell, table[rows].flatten(1))
     changed = (cell[0] != cell[1]).reshape(4, 4).any(dim=1)
     assert changed.tolist() == [False, False, True, False]

@@ -64,11 +64,8 @@ class InstructionGenerator(nn.Module):
         self.front = front_cell(spec.view_size)
         self.encoder = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), in_frames=1, spec=spec)
         self.shortcut = bool(cfg.front_cell_shortcut)  # off: the paper's generator, conv features only
-        channels = len(spec.channel_values)
-        self.context = nn.Linear(self.encoder.out_dim + (channels * cfg.embed_dim if self.shortcut else 0), cfg.hidden)
-        # Row offset of each channel's values in the encoder's embedding table (kind, color, shade, size).
-        offsets = np.concatenate([[0], np.cumsum(spec.channel_values)[:-1]])
-        self.register_buffer("channel_offsets", torch.as_tensor(offsets, dtype=torch.long), persistent=False)
+        cell_dim = len(spec.channel_values) * cfg.embed_dim  # the front cell's channel rows, side by side
+        self.context = nn.Linear(self.encoder.out_dim + (cell_dim if self.shortcut else 0), cfg.hidden)
         self.where = nn.Embedding(LOC_MASKS, cfg.hidden) if spec.has_locations else None
         self.init_hidden = nn.Linear(cfg.hidden, cfg.hidden)
         self.word_embed = nn.Embedding(vocab_size, cfg.word_embed_dim, padding_idx=PAD)
@@ -90,10 +87,8 @@ class InstructionGenerator(nn.Module):
         maps = self.encoder(stacked).flatten(1)
         if self.shortcut:
             r, c = self.front
-            # The front cell's channel values through the same (shared) table, one row per channel.
-            rows = views[:, r, c, :].long() + self.channel_offsets
-            cell = F.embedding(rows, self.encoder.embed.weight).flatten(1)
-            maps = torch.cat([maps, cell], dim=1)
+            # The front cell through the same (shared) table, one row per channel.
+            maps = torch.cat([maps, self.encoder.channel_embeddings(views[:, r, c, :])], dim=1)
         ctx = self.context(maps)
         if self.where is not None:
             ctx = ctx + self.where(torch.zeros_like(views[:, 0, 0, 0], dtype=torch.long) if where is None
