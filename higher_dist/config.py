@@ -86,7 +86,7 @@ class DQNConfig:
     lr_decay_frames: int = 0  # > 0: lr falls linearly to lr * lr_end_fraction over this many env frames
     lr_end_fraction: float = 0.1  # where the lr decay ends, as a fraction of lr
     adam_eps: float = 1e-6  # Adam's epsilon
-    gamma: float = 0.99  # discount per step
+    gamma: float = 0.95  # discount per step (a wasted step costs 5% of the value: docs/decisions.md)
     n_step: int = 3  # steps of the n-step return
     huber_delta: float = 1.0  # Huber loss threshold
     grad_clip: float = 10.0  # gradient norm clip
