@@ -2,9 +2,9 @@
 the archived plans' reports.
 
 docs/results.md is prose around tables that `higher-reproduce --report` writes into each archive's own
-results.md (docs/runs/claims-default/, docs/runs/claims-paper/). Each copied part sits between
-`<!-- gen:NAME -->` and `<!-- /gen -->`; NAME picks the part, and a `paper-` prefix reads it from the
-paper profile's archive instead of the default one. Redraw an archive's report, run this, and the prose
+results.md (docs/runs/claims-default/, docs/runs/claims-paper/, docs/runs/main-defaults/). Each copied
+part sits between `<!-- gen:NAME -->` and `<!-- /gen -->`; NAME picks the part, and a prefix picks the
+archive: none for claims-default, `paper-` for the paper profile's, `main-` for `main` on today's defaults. Redraw an archive's report, run this, and the prose
 keeps its tables current. `--check` only compares (exit code 1 on a difference).
 """
 from __future__ import annotations
@@ -16,7 +16,8 @@ from pathlib import Path
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 RESULTS = DOCS / "results.md"
-ARCHIVES = {"": DOCS / "runs" / "claims-default", "paper-": DOCS / "runs" / "claims-paper"}
+ARCHIVES = {"": DOCS / "runs" / "claims-default", "paper-": DOCS / "runs" / "claims-paper",
+            "main-": DOCS / "runs" / "main-defaults"}
 BLOCK = re.compile(r"(<!-- gen:([\w-]+) -->\n)(.*?)(<!-- /gen -->)", re.S)
 
 # A part of a report: the first line that starts with its marker, then the lines a table goes on with.
