@@ -109,11 +109,11 @@ class ViewEncoder(nn.Module):
         self.cell_radix = tuple(int(np.prod(self.channel_values[i + 1:])) for i in range(len(self.channel_values)))
         # Rows: kind values, then color, shade and size values (offsets 0, 5, 12, 18).
         self.embed = nn.Embedding(sum(self.channel_values), embed_dim)
+        # Not persistent: a constant of the encoding, not a weight to publish or checkpoint.
+        self.register_buffer("channel_max", torch.tensor(spec.channel_max, dtype=torch.uint8), persistent=False)
         # Not persistent either: the first row of each channel's values in `embed`.
         offsets = np.concatenate([[0], np.cumsum(self.channel_values)[:-1]])
         self.register_buffer("channel_offsets", torch.as_tensor(offsets, dtype=torch.long), persistent=False)
-        # Not persistent: a constant of the encoding, not a weight to publish or checkpoint.
-        self.register_buffer("channel_max", torch.tensor(spec.channel_max, dtype=torch.uint8), persistent=False)
         convs = []
         in_ch, size = in_frames * embed_dim, view_size
         for out_ch in conv_channels:

@@ -4,8 +4,8 @@ the archived plans' reports.
 docs/results.md is prose around tables that `higher-reproduce --report` writes into each archive's own
 results.md (docs/runs/claims-default/, docs/runs/claims-paper/, docs/runs/main-defaults/). Each copied
 part sits between `<!-- gen:NAME -->` and `<!-- /gen -->`; NAME picks the part, and a prefix picks the
-archive: none for claims-default, `paper-` for the paper profile's, `main-` for `main` on today's defaults. Redraw an archive's report, run this, and the prose
-keeps its tables current. `--check` only compares (exit code 1 on a difference).
+archive: none for claims-default, `paper-` for the paper profile's, `main-` for `main` on today's
+defaults. Redraw an archive's report, run this, and the prose keeps its tables current. `--check` only compares (exit code 1 on a difference).
 """
 from __future__ import annotations
 
