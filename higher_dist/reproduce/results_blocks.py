@@ -2,12 +2,10 @@
 the archived plans' reports.
 
 docs/results.md is prose around tables that `higher-reproduce --report` writes into each archive's own
-results.md (docs/runs/claims-default/, docs/runs/claims-paper/, docs/runs/main-defaults/,
-docs/runs/pickupdist-defaults/). Each copied part sits between `<!-- gen:NAME -->` and `<!-- /gen -->`;
-NAME picks the part, and a prefix picks the archive: none for claims-default, `paper-` for the paper
-profile's, `main-` for `main` on today's defaults, `pickupdist-` for `main` on BabyAI-PickupDist-v0.
-Redraw an archive's report, run this, and the prose keeps its tables current. `--check` only compares
-(exit code 1 on a difference).
+results.md (the folders of `ARCHIVES` below). Each copied part sits between `<!-- gen:NAME -->` and
+`<!-- /gen -->`; NAME picks the part, and its prefix (a key of `ARCHIVES`) picks the archive. Redraw an
+archive's report, run this, and the prose keeps its tables current. `--check` only compares (exit code 1
+on a difference).
 """
 from __future__ import annotations
 
@@ -18,8 +16,10 @@ from pathlib import Path
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 RESULTS = DOCS / "results.md"
-ARCHIVES = {"": DOCS / "runs" / "claims-default", "paper-": DOCS / "runs" / "claims-paper",
-            "main-": DOCS / "runs" / "main-defaults", "pickupdist-": DOCS / "runs" / "pickupdist-defaults"}
+ARCHIVES = {  # block prefix -> archive: every experiment on the earlier defaults and on the paper's profile,
+    # then `main` on today's defaults on the paper world and on BabyAI-PickupDist-v0
+    "": DOCS / "runs" / "claims-default", "paper-": DOCS / "runs" / "claims-paper",
+    "main-": DOCS / "runs" / "main-defaults", "pickupdist-": DOCS / "runs" / "pickupdist-defaults"}
 BLOCK = re.compile(r"(<!-- gen:([\w-]+) -->\n)(.*?)(<!-- /gen -->)", re.S)
 
 # A part of a report: the first line that starts with its marker, then the lines a table goes on with.
