@@ -195,14 +195,19 @@ def test_a_second_reproduce_on_the_same_folder_is_refused(tmp_path):
 
     from higher_dist.reproduce.cli import _lock
 
-    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)  # higher-reproduce stand-in"])
+    other = subprocess.Popen([sys.executable, "-c", "import time; print('up', flush=True); time.sleep(60)  "
+                              "# higher-reproduce stand-in"], stdout=subprocess.PIPE, text=True)
     try:
+        # Popen returns once exec has begun, before the kernel fills in the child's command line;
+        # its first line of output says the stand-in is running under its own name
+        assert other.stdout.readline().strip() == "up"
         (tmp_path / "reproduce.pid").write_text(str(other.pid))
         with pytest.raises(ConfigError, match=f"pid {other.pid}"):
             _lock(tmp_path)
     finally:
         other.kill()
         other.wait()
+        other.stdout.close()
     _lock(tmp_path)  # its process is gone: the folder is free again, and now ours
     assert (tmp_path / "reproduce.pid").read_text() == str(__import__("os").getpid())
 
