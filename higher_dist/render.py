@@ -283,7 +283,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cell", type=int, default=24, help="pixels per grid cell")
     p.add_argument("--weights", choices=("online", "averaged"), default="online",
                    help="the learner's online weights, or their moving average (dqn.average_tau)")
+    p.add_argument("--tally", type=int, default=None, metavar="N",
+                   help="draw nothing: play N episodes and print how they end (success, wrong outcome, cycling, "
+                        "searching; docs/getting-started.md)")
+    p.add_argument("--epsilon", type=float, default=0.0,
+                   help="with --tally: act epsilon-greedily with this epsilon instead of greedily")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    if args.tally is not None or args.epsilon:
+        return tally_main(args)
     out = Path(args.out)
     if not 1 <= args.episodes <= 64:
         return _die("--episodes: must be in [1, 64]")
@@ -322,6 +329,36 @@ def main(argv: list[str] | None = None) -> int:
         save_strip(watched, spec, args.cell, label, out)
     outcomes = [outcome_text(w.episode, spec).split(" ")[0] for w in watched]
     print(f"{out}: {len(watched)} episodes of {run_dir} ({label}): {', '.join(outcomes)}")
+    return 0
+
+
+def tally_main(args) -> int:
+    """`--tally N`: the table of how N episodes end, printed; nothing drawn."""
+    from higher_dist import tally
+
+    if args.tally is None:
+        return _die("--epsilon: goes with --tally N (drawn episodes are greedy)")
+    if not 1 <= args.tally <= 4096:
+        return _die(f"--tally: episodes to play must be in [1, 4096], got {args.tally}")
+    if not 0.0 <= args.epsilon <= 1.0:
+        return _die(f"--epsilon: must be in [0, 1], got {args.epsilon}")
+    if args.goal_set == "both":
+        return _die("--goal-set both: --tally scores one goal set at a time (train or heldout)")
+    run_dir = Path(args.run_dir)
+    try:
+        cfg, policy, frames = load_policy(run_dir, args.weights)
+    except ConfigError as e:
+        return _die(str(e))
+    spec = WorldSpec.of(cfg.world)
+    if args.goal_set != "train" and not spec.has_heldout:
+        return _die(f"--goal-set {args.goal_set}: {cfg.world.name} has no held-out goals (a BabyAI level "
+                    "has only its own missions)")
+    episodes = tally.play(cfg, policy, args.tally, frames, args.goal_set, args.epsilon)
+    table = tally.Tally.of(spec, episodes, cfg.network.frame_stack)
+    acting = f"epsilon {args.epsilon:g}" if args.epsilon else "greedy"
+    print(f"{run_dir}: {cfg.preset} on {cfg.world.name} @ {frames:,} frames, {args.weights} weights, {acting}, "
+          f"{args.tally} episodes ({args.goal_set} goals)\n")
+    print(table.markdown())
     return 0
 
 

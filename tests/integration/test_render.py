@@ -109,6 +109,32 @@ def test_refuses_a_folder_without_a_checkpoint(tmp_path, capsys):
         assert message in capsys.readouterr().err
 
 
+def test_tally_counts_the_runs_greedy_episodes_as_its_evaluation_does(run_dir, capsys):
+    from higher_dist.learning.acting import evaluate
+    from higher_dist.learning.seeds import Seeds
+
+    assert render.main([str(run_dir), "--tally", "48"]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("| all |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1] == "48" and abs(sum(float(c.rstrip("%")) for c in cells[2:]) - 100) < 0.5
+    # Its success share is the run's own greedy evaluation on the same goals (one episode per environment).
+    cfg, policy, frames = render.load_policy(run_dir)
+    rate, _ = evaluate(policy, cfg.world, cfg.network.frame_stack, "train", Seeds(cfg.seed).evaluation_env_seeds(frames, 48))
+    assert cells[2] == f"{100 * rate:.1f}%"
+    assert f"@ {frames:,} frames, online weights, greedy, 48 episodes (train goals)" in out
+    assert render.main([str(run_dir), "--tally", "8", "--goal-set", "heldout", "--epsilon", "0.3"]) == 0
+    assert "epsilon 0.3, 8 episodes (heldout goals)" in capsys.readouterr().out
+
+
+def test_tally_refuses_bad_flags_by_name(run_dir, capsys):
+    for flags, message in ((["--tally", "0"], "--tally"), (["--tally", "5000"], "--tally"),
+                           (["--tally", "4", "--epsilon", "1.5"], "--epsilon"), (["--epsilon", "0.1"], "goes with --tally"),
+                           (["--tally", "4", "--goal-set", "both"], "--goal-set both")):
+        assert render.main([str(run_dir), *flags]) == 2
+        assert message in capsys.readouterr().err
+
+
 def test_the_averaged_weights_can_be_drawn_and_a_run_without_them_is_refused(run_dir, tmp_path, capsys):
     import shutil
 
@@ -224,6 +250,15 @@ def test_babyai_panel_of_a_time_out_after_a_pickup_names_the_relabel(babyai_run)
     text = render.relabel_text(learned, "gate closed", failed, rng, spec)
     assert text.startswith('generator: "') and text.endswith("[gate closed]"), text
     np.testing.assert_array_equal(seen[0][0], failed.frames[failed.pick_step])
+
+
+def test_babyai_tally_has_a_row_per_location_phrase(babyai_run, capsys):
+    assert render.main([str(babyai_run), "--tally", "24"]) == 0
+    out = capsys.readouterr().out
+    # PickupDist's missions name no location: one row, "none", and no total row beside it.
+    assert "| none | 24 |" in out and "every mission" not in out
+    assert render.main([str(babyai_run), "--tally", "4", "--goal-set", "heldout"]) == 2
+    assert "no held-out goals" in capsys.readouterr().err
 
 
 def test_babyai_has_no_held_out_goals_to_draw(babyai_run, tmp_path, capsys):
