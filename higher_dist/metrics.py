@@ -30,6 +30,10 @@ EPSILON_MEAN = "epsilon_mean"  # mean exploration epsilon over the actors' envir
 # environments exploring at their epsilons and is reported as such.
 SUCCESS_EVAL_TRAIN = "success_rate_eval_train"  # greedy success on training goals, latest evaluation [fraction]
 SUCCESS_EVAL_HELDOUT = "success_rate_eval_heldout"  # greedy success on held-out goals, latest evaluation [fraction]
+# Of the same greedy episodes, those that achieved nothing and ended in a cycle: the policy's input
+# repeated, so it repeated its actions until the time-out (learning/episode_ends.py).
+CYCLING_EVAL_TRAIN = "cycling_rate_eval_train"  # share of the greedy episodes on training goals that ended in a cycle [fraction]
+CYCLING_EVAL_HELDOUT = "cycling_rate_eval_heldout"  # share of the greedy episodes on held-out goals that ended in a cycle [fraction]
 SUCCESS_TRAIN = "success_rate_train"  # success of the episodes the learner took in, while exploring [fraction]
 EVAL_FRAMES = "eval_frames"  # env frames the evaluated weights had seen (every record repeats the latest) [frames]
 SE_SUFFIX = "_se"  # + on an evaluation key: its standard error, sqrt(p (1 - p) / episodes) [fraction]
@@ -43,6 +47,8 @@ SUCCESS_EVAL_TRAIN_AVERAGED = SUCCESS_EVAL_TRAIN + AVERAGED_SUFFIX  # greedy suc
 SUCCESS_EVAL_HELDOUT_AVERAGED = SUCCESS_EVAL_HELDOUT + AVERAGED_SUFFIX  # greedy success of the averaged weights on held-out goals [fraction]
 SUCCESS_EVAL_TRAIN_AVERAGED_SE = SUCCESS_EVAL_TRAIN_AVERAGED + SE_SUFFIX  # standard error of success_rate_eval_train_averaged [fraction]
 SUCCESS_EVAL_HELDOUT_AVERAGED_SE = SUCCESS_EVAL_HELDOUT_AVERAGED + SE_SUFFIX  # standard error of success_rate_eval_heldout_averaged [fraction]
+CYCLING_EVAL_TRAIN_AVERAGED = CYCLING_EVAL_TRAIN + AVERAGED_SUFFIX  # share of the averaged weights' greedy episodes on training goals that ended in a cycle [fraction]
+CYCLING_EVAL_HELDOUT_AVERAGED = CYCLING_EVAL_HELDOUT + AVERAGED_SUFFIX  # share of the averaged weights' greedy episodes on held-out goals that ended in a cycle [fraction]
 
 # -- replay and learning --------------------------------------------------------------------------
 REPLAY_SIZE = "replay_size"  # transitions in the replay [transitions]
@@ -121,6 +127,7 @@ LABELS: dict[str, str] = {
     SUCCESS_TRAIN: "training success (exploring, epsilon-greedy)",
     SUCCESS_EVAL_TRAIN_AVERAGED: "greedy success of the averaged weights, training goals",
     SUCCESS_EVAL_HELDOUT_AVERAGED: "greedy success of the averaged weights, held-out goals",
+    CYCLING_EVAL_TRAIN: "greedy episodes ending in a cycle, training goals",
     GENERATOR_VAL_ACCURACY: "generator exact match (validation)",
     RELABEL_ACCURACY: "relabel accuracy (last 1000 relabels)",
     RELABEL_DATASET_SIZE: "generator pairs",

@@ -121,7 +121,9 @@ CURVE_COLUMNS = (("frames", m.FRAMES, 0), ("minutes", m.ELAPSED_S, 1), ("updates
                  ("relabelled_episodes", m.RELABELLED_EPISODES, 0), ("contradicting", m.RELABEL_CONTRADICTING, 0),
                  # empty unless the run kept a moving average of its weights (dqn.average_tau > 0)
                  ("greedy_train_averaged", m.SUCCESS_EVAL_TRAIN_AVERAGED, 3),
-                 ("greedy_heldout_averaged", m.SUCCESS_EVAL_HELDOUT_AVERAGED, 3))
+                 ("greedy_heldout_averaged", m.SUCCESS_EVAL_HELDOUT_AVERAGED, 3),
+                 # greedy episodes that ended in a cycle (learning/episode_ends.py); empty in older runs
+                 ("cycling_train", m.CYCLING_EVAL_TRAIN, 3), ("cycling_heldout", m.CYCLING_EVAL_HELDOUT, 3))
 
 
 def curve_rows(run: Run) -> list[dict[str, str]]:

@@ -356,8 +356,9 @@ def tally_main(args) -> int:
     episodes = tally.play(cfg, policy, args.tally, frames, args.goal_set, args.epsilon)
     table = tally.Tally.of(spec, episodes, cfg.network.frame_stack)
     acting = f"epsilon {args.epsilon:g}" if args.epsilon else "greedy"
+    goals = "the level's missions" if spec.family == "babyai" else f"{args.goal_set} goals"
     print(f"{run_dir}: {cfg.preset} on {cfg.world.name} @ {frames:,} frames, {args.weights} weights, {acting}, "
-          f"{args.tally} episodes ({args.goal_set} goals)\n")
+          f"{args.tally} episodes ({goals})\n")
     print(table.markdown())
     return 0
 

@@ -15,6 +15,7 @@ import torch
 from higher_dist import metrics as m
 from higher_dist.config import NetworkConfig, WorldConfig
 from higher_dist.learning.episode import SUCCESS, Episode
+from higher_dist.learning.episode_ends import classify
 from higher_dist.learning.exploration import Explorer, epsilon_greedy
 from higher_dist.learning.devices import resolve_device
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
@@ -111,52 +112,72 @@ def act(collector: EpisodeCollector, q_fn: QFunction, eps: np.ndarray, rng: np.r
     return episodes
 
 
-def evaluate(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, goal_set: str, env_seeds: Sequence[int],
-             n_envs: int = 256) -> tuple[float, float]:
-    """Greedy success rate over one episode per seed of `env_seeds` (Seeds.evaluation_env_seeds), whose
-    goals come from `goal_set` (train|heldout), and its standard error.
+def first_episodes(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, goal_set: str, env_seeds: Sequence[int],
+                   n_envs: int = 256, epsilon: float = 0.0, rng: np.random.Generator | None = None) -> list[Episode]:
+    """One episode per seed of `env_seeds`, whose goals come from `goal_set` (train|heldout), played by
+    `q_fn` greedily (first on ties, as epsilon_greedy), or with a random action with probability
+    `epsilon` (drawn from `rng`).
 
     Exactly one episode per environment: the environments (in batches of at most `n_envs`) each run
     their first episode to its end, and only that episode counts. Keeping the first episodes to finish
     instead would over-count short ones (successes end early, time-outs last the whole step limit),
-    biasing the rate upwards.
+    biasing a success rate upwards.
     """
-    episodes = len(env_seeds)
-    if episodes < 1:
-        raise ValueError(f"env_seeds: needs at least one seed (one per episode), got {episodes}")
-    successes = 0
-    for start in range(0, episodes, n_envs):
+    if len(env_seeds) < 1:
+        raise ValueError(f"env_seeds: needs at least one seed (one per episode), got {len(env_seeds)}")
+    if epsilon > 0 and rng is None:
+        raise ValueError("first_episodes: epsilon > 0 needs an rng")
+    n_actions = WorldSpec.of(world_cfg).n_actions
+    out: list[Episode] = []
+    for start in range(0, len(env_seeds), n_envs):
         batch_seeds = list(env_seeds[start:start + n_envs])
-        collector = EpisodeCollector(world_cfg, len(batch_seeds), frame_stack, goal_set=goal_set,
-                                     env_seeds=batch_seeds)
-        successes += _first_episode_successes(collector, q_fn)
-    rate = successes / episodes
-    return rate, math.sqrt(rate * (1.0 - rate) / episodes)
+        collector = EpisodeCollector(world_cfg, len(batch_seeds), frame_stack, goal_set=goal_set, env_seeds=batch_seeds)
+        first: list[Episode | None] = [None] * len(batch_seeds)
+        while any(ep is None for ep in first):
+            obs, mission = collector.observation()
+            actions = q_fn(obs, mission).argmax(axis=1)
+            if epsilon > 0:
+                explore = rng.random(len(actions)) < epsilon
+                actions = np.where(explore, rng.integers(n_actions, size=len(actions)), actions)
+            finished = collector.step(actions)
+            # The collector lists the episodes that ended on this step in environment order.
+            for i, ep in zip(np.flatnonzero(collector.last_outcome != RUNNING), finished):
+                if first[i] is None:
+                    first[i] = ep
+        out.extend(first)
+    return out
 
 
-def _first_episode_successes(collector: EpisodeCollector, q_fn: QFunction) -> int:
-    """Step every env greedily until each has ended its first episode; count the successes among those."""
-    first_outcome = np.full(collector.n_envs, RUNNING)
-    while (first_outcome == RUNNING).any():
-        obs, mission = collector.observation()
-        collector.step(q_fn(obs, mission).argmax(axis=1))  # greedy, first on ties (as epsilon_greedy)
-        outcome = collector.last_outcome  # RUNNING where the episode goes on
-        first_outcome = np.where((first_outcome == RUNNING) & (outcome != RUNNING), outcome, first_outcome)
-    return int((first_outcome == SUCCESS).sum())
+def evaluate(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, goal_set: str, env_seeds: Sequence[int],
+             n_envs: int = 256) -> tuple[float, float]:
+    """Greedy success rate over one episode per seed of `env_seeds` (Seeds.evaluation_env_seeds), whose
+    goals come from `goal_set` (train|heldout), and its standard error (first_episodes)."""
+    rate, se, _ = _rates(first_episodes(q_fn, world_cfg, frame_stack, goal_set, env_seeds, n_envs), frame_stack)
+    return rate, se
+
+
+def _rates(episodes: list[Episode], frame_stack: int) -> tuple[float, float, float]:
+    """(success rate, its standard error, the share of episodes that ended in a cycle)."""
+    n = len(episodes)
+    rate = sum(ep.outcome == SUCCESS for ep in episodes) / n
+    cycling = sum(classify(ep, frame_stack) == "cycling" for ep in episodes) / n
+    return rate, math.sqrt(rate * (1.0 - rate) / n), cycling
 
 
 def evaluate_goal_sets(q_fn: QFunction, cfg, env_seeds: Sequence[int], suffix: str = "") -> dict[str, float]:
     """The periodic evaluation of a run (`cfg`: Config): greedy success on training and held-out goals,
-    each with its standard error (`_se`), one episode per seed of `env_seeds` in each goal set.
+    each with its standard error (`_se`) and the share of episodes that ended in a cycle
+    (learning/episode_ends.py), one episode per seed of `env_seeds` in each goal set.
     `suffix` names another policy scored on the same goals (metrics.AVERAGED_SUFFIX for the averaged
     weights)."""
     k = cfg.network.frame_stack
     out: dict[str, float] = {}
-    goal_sets = [("train", m.SUCCESS_EVAL_TRAIN)]
+    goal_sets = [("train", m.SUCCESS_EVAL_TRAIN, m.CYCLING_EVAL_TRAIN)]
     if WorldSpec.of(cfg.world).has_heldout:  # a BabyAI level is scored on its own missions only
-        goal_sets.append(("heldout", m.SUCCESS_EVAL_HELDOUT))
-    for goal_set, key in goal_sets:
-        rate, se = evaluate(q_fn, cfg.world, k, goal_set, env_seeds)
+        goal_sets.append(("heldout", m.SUCCESS_EVAL_HELDOUT, m.CYCLING_EVAL_HELDOUT))
+    for goal_set, key, cycling_key in goal_sets:
+        rate, se, cycling = _rates(first_episodes(q_fn, cfg.world, k, goal_set, env_seeds), k)
         out[key + suffix] = round(rate, 4)
         out[key + suffix + m.SE_SUFFIX] = round(se, 4)
+        out[cycling_key + suffix] = round(cycling, 4)
     return out

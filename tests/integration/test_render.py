@@ -256,7 +256,7 @@ def test_babyai_tally_has_a_row_per_location_phrase(babyai_run, capsys):
     assert render.main([str(babyai_run), "--tally", "24"]) == 0
     out = capsys.readouterr().out
     # PickupDist's missions name no location: one row, "none", and no total row beside it.
-    assert "| none | 24 |" in out and "every mission" not in out
+    assert "| none | 24 |" in out and "every mission" not in out and "24 episodes (the level's missions)" in out
     assert render.main([str(babyai_run), "--tally", "4", "--goal-set", "heldout"]) == 2
     assert "no held-out goals" in capsys.readouterr().err
 

@@ -171,5 +171,6 @@ def test_table_has_one_row_per_new_evaluation_and_the_last_record(tmp_path, caps
     assert float(rows[-1]["greedy_train"]) == 0.7 and float(rows[-1]["greedy_heldout"]) == 0.6
     assert rows[0]["generator_val"] == "" and float(rows[-1]["generator_val"]) > 0.8
     assert [r["gate_open"] for r in rows[:4]] == ["0", "0", "0", "1"]
+    assert rows[-1]["cycling_train"] == ""  # these records predate the cycling share: an empty cell, not a 0
     printed = capsys.readouterr().out
     assert "| frames | minutes |" in printed and printed.count("\n| ") >= 18

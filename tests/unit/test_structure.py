@@ -184,7 +184,7 @@ LAYERS = (
     ("rundir",),
     ("launch",),
     ("roles",),
-    ("render_babyai",),  # below render, which draws through it
+    ("render_babyai", "tally"),  # below render, which draws and tallies through them
     ("analysis", "render"),
     ("plot", "reproduce", "bench"),
     ("cli", "docs_gen"),

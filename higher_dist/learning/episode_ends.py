@@ -1,0 +1,43 @@
+"""How an episode ended: success, a wrong outcome, a cycle, or a search still going at the time-out.
+
+A greedy agent fails in one of three ways. It achieves something other than its mission (a wrong
+outcome: what HER and HIGhER relabel); or it achieves nothing, either caught in a cycle or still
+searching. It is in a cycle when its input, the last `frame_stack` views it acted on, equals the input
+P steps earlier (P <= MAX_PERIOD): the world does not change while nothing is achieved and a greedy
+policy is a function of its input and its mission, so from there it repeats the same P actions until
+the time-out. Period 1 is an action that changes nothing (a step into a wall), 2 a step back and forth,
+4 a turn on the spot. Relabelling cannot help an episode that achieved nothing.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from higher_dist.learning.episode import SUCCESS, Episode
+
+MAX_PERIOD = 16  # the longest cycle looked for: 4 turns make a turn on the spot, 16 steps a small loop walked
+KINDS = ("success", "wrong outcome", "cycling", "searching")
+
+
+def cycle_period(frames: np.ndarray, stack: int, max_period: int = MAX_PERIOD) -> int:
+    """The shortest P in [1, max_period] for which the last `stack` views an agent acted on equal the
+    `stack` views P steps before them; 0 when none does.
+
+    `frames` (T+1, V, V, C): an episode's views, the last one after its last action (not acted on)."""
+    acted = np.asarray(frames)[:-1]
+    steps = len(acted)
+    last = acted[steps - stack:]
+    for period in range(1, max_period + 1):
+        if period + stack > steps:
+            break
+        if np.array_equal(last, acted[steps - stack - period:steps - period]):
+            return period
+    return 0
+
+
+def classify(ep: Episode, stack: int) -> str:
+    """One of KINDS for an episode played to its end by an agent with a `stack`-frame input."""
+    if ep.outcome == SUCCESS:
+        return "success"
+    if ep.pick_step is not None and ep.pick_step >= 0:
+        return "wrong outcome"
+    return "cycling" if cycle_period(ep.frames, stack) else "searching"
