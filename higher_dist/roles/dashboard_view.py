@@ -255,6 +255,8 @@ def learning_panel(record: dict[str, Any]) -> Panel:
     t.add_row("greedy, held-out", fmt_eval(record, "success_rate_eval_heldout"))
     if _is_number(record.get(m.SUCCESS_EVAL_TRAIN_AVERAGED)):  # dqn.average_tau > 0
         t.add_row("greedy, averaged", fmt_eval(record, m.SUCCESS_EVAL_TRAIN_AVERAGED))
+    if _is_number(record.get(m.CYCLING_EVAL_TRAIN)):  # most greedy failures are cycles (learning/episode_ends.py)
+        t.add_row("greedy, cycling", fmt_pct(record.get(m.CYCLING_EVAL_TRAIN)))
     t.add_row("exploring, train", fmt_pct(record.get(m.SUCCESS_TRAIN)))
     return Panel(t, title="Learning", title_align="left")
 

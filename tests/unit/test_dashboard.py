@@ -149,6 +149,14 @@ def test_averaged_weights_get_their_own_row_and_summary_field():
     assert "averaged 0.62 |" in _summary(record) and "averaged" not in _summary(recorded_stream()[-1])
 
 
+def test_the_share_of_greedy_episodes_that_cycled_shows_when_the_record_has_it():
+    state = DashboardState()
+    state.update({**recorded_stream()[-1], "cycling_rate_eval_train": 0.25}, now=0.0)
+    assert figures(drawn_panels(export(render(state, now=0.5)))["Learning"])["greedy, cycling"] == "25.0%"
+    state.update(recorded_stream()[-1], now=1.0)  # a run from before the share was measured: no row
+    assert "greedy, cycling" not in figures(drawn_panels(export(render(state, now=1.5)))["Learning"])
+
+
 def test_dead_role_row_is_red():
     state = DashboardState()
     state.update(recorded_stream()[-1], now=0.0)
