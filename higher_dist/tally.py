@@ -45,7 +45,6 @@ class Tally:
     groups: dict  # group -> {kind: count}
     lengths: dict  # kind -> mean episode length in steps
     periods: dict  # cycle period -> episodes caught in a cycle of that period
-    stack: int
 
     @classmethod
     def of(cls, spec: WorldSpec, episodes: list[Episode], stack: int) -> "Tally":
@@ -62,7 +61,7 @@ class Tally:
             by_kind[kind].append(ep.length)
         order = sorted(groups, key=lambda g: (g in ("all", "none"), g))  # named locations first, then the rest
         return cls({g: groups[g] for g in order}, {k: float(np.mean(v)) if v else float("nan")
-                                                    for k, v in by_kind.items()}, dict(sorted(periods.items())), stack)
+                                                    for k, v in by_kind.items()}, dict(sorted(periods.items())))
 
     def total(self) -> dict[str, int]:
         return {kind: sum(c[kind] for c in self.groups.values()) for kind in KINDS}
@@ -80,6 +79,7 @@ class Tally:
         lines.append("")
         lines.append(f"mean length in steps: {lengths}")
         if self.periods:
+            periods = ", ".join(f"{p}: {n}" for p, n in self.periods.items())
             lines.append("cycles by period (steps until the input repeats; 1: an action that changes nothing, such "
-                         "as a step into a wall; 2: back and forth; 4: a turn on the spot): " + ", ".join(f"{p}: {n}" for p, n in self.periods.items()))
+                         f"as a step into a wall; 2: back and forth; 4: a turn on the spot): {periods}")
         return "\n".join(lines)
