@@ -304,14 +304,10 @@ def main(argv: list[str] | None = None) -> int:
         return _die("Pillow is missing; pip install 'higher-dist[plot]'")
     run_dir = Path(args.run_dir)
     try:
-        cfg, policy, frames = load_policy(run_dir, args.weights)
+        cfg, policy, frames, spec = _policy_for(run_dir, args)
         strategy, note = load_relabeller(cfg, run_dir)
     except ConfigError as e:
         return _die(str(e))
-    spec = WorldSpec.of(cfg.world)
-    if args.goal_set != "train" and not spec.has_heldout:
-        return _die(f"--goal-set {args.goal_set}: {cfg.world.name} has no held-out goals (a BabyAI level "
-                    "has only its own missions)")
     if args.goal_set == "both":
         train = watch(cfg, policy, (args.episodes + 1) // 2, "train", args.seed, args.cell)
         heldout = watch(cfg, policy, args.episodes // 2, "heldout", args.seed, args.cell)
@@ -346,13 +342,9 @@ def tally_main(args) -> int:
         return _die("--goal-set both: --tally scores one goal set at a time (train or heldout)")
     run_dir = Path(args.run_dir)
     try:
-        cfg, policy, frames = load_policy(run_dir, args.weights)
+        cfg, policy, frames, spec = _policy_for(run_dir, args)
     except ConfigError as e:
         return _die(str(e))
-    spec = WorldSpec.of(cfg.world)
-    if args.goal_set != "train" and not spec.has_heldout:
-        return _die(f"--goal-set {args.goal_set}: {cfg.world.name} has no held-out goals (a BabyAI level "
-                    "has only its own missions)")
     episodes = tally.play(cfg, policy, args.tally, frames, args.goal_set, args.epsilon)
     table = tally.Tally.of(spec, episodes, cfg.network.frame_stack)
     acting = f"epsilon {args.epsilon:g}" if args.epsilon else "greedy"
@@ -361,6 +353,17 @@ def tally_main(args) -> int:
           f"{args.tally} episodes ({goals})\n")
     print(table.markdown())
     return 0
+
+
+def _policy_for(run_dir: Path, args):
+    """(config, policy, frames, world spec) of the run's checkpoint under `--weights`; ConfigError when
+    there is none, or when `--goal-set` asks for held-out goals of a world that has none."""
+    cfg, policy, frames = load_policy(run_dir, args.weights)
+    spec = WorldSpec.of(cfg.world)
+    if args.goal_set != "train" and not spec.has_heldout:
+        raise ConfigError(f"--goal-set {args.goal_set}: {cfg.world.name} has no held-out goals (a BabyAI level "
+                          "has only its own missions)")
+    return cfg, policy, frames, spec
 
 
 def _die(message: str) -> int:
