@@ -17,8 +17,9 @@ import numpy as np
 
 from higher_dist.learning.acting import first_episodes
 from higher_dist.learning.episode import Episode
-from higher_dist.learning.episode_ends import KINDS, classify, cycle_period
+from higher_dist.learning.episode_ends import KINDS, end_of
 from higher_dist.learning.seeds import Seeds
+from higher_dist.world.babyai_language import LOC_PHRASES
 from higher_dist.world.spec import WorldSpec
 
 
@@ -26,8 +27,6 @@ def mission_group(spec: WorldSpec, ep: Episode) -> str:
     """The location phrase a BabyAI mission names ("none" if it names none); "all" on FetchAttr."""
     if spec.family != "babyai":
         return "all"
-    from higher_dist.world.babyai_language import LOC_PHRASES
-
     text = spec.language.decode(ep.mission)
     return next((phrase for phrase in LOC_PHRASES if phrase in text), "none")
 
@@ -52,9 +51,8 @@ class Tally:
         by_kind: dict[str, list[int]] = {kind: [] for kind in KINDS}
         periods: dict[int, int] = {}
         for ep in episodes:
-            kind = classify(ep, stack)
-            if kind == "cycling":
-                period = cycle_period(ep.frames, stack)
+            kind, period = end_of(ep, stack)
+            if period:
                 periods[period] = periods.get(period, 0) + 1
             counts = groups.setdefault(mission_group(spec, ep), dict.fromkeys(KINDS, 0))
             counts[kind] += 1

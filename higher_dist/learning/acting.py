@@ -127,7 +127,6 @@ def first_episodes(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, go
         raise ValueError(f"env_seeds: needs at least one seed (one per episode), got {len(env_seeds)}")
     if epsilon > 0 and rng is None:
         raise ValueError("first_episodes: epsilon > 0 needs an rng")
-    n_actions = WorldSpec.of(world_cfg).n_actions
     out: list[Episode] = []
     for start in range(0, len(env_seeds), n_envs):
         batch_seeds = list(env_seeds[start:start + n_envs])
@@ -135,11 +134,8 @@ def first_episodes(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, go
         first: list[Episode | None] = [None] * len(batch_seeds)
         while any(ep is None for ep in first):
             obs, mission = collector.observation()
-            actions = q_fn(obs, mission).argmax(axis=1)
-            if epsilon > 0:
-                explore = rng.random(len(actions)) < epsilon
-                actions = np.where(explore, rng.integers(n_actions, size=len(actions)), actions)
-            finished = collector.step(actions)
+            q = q_fn(obs, mission)
+            finished = collector.step(epsilon_greedy(q, epsilon, rng) if epsilon > 0 else q.argmax(axis=1))
             # The collector lists the episodes that ended on this step in environment order.
             for i, ep in zip(np.flatnonzero(collector.last_outcome != RUNNING), finished):
                 if first[i] is None:

@@ -34,10 +34,17 @@ def cycle_period(frames: np.ndarray, stack: int, max_period: int = MAX_PERIOD) -
     return 0
 
 
+def end_of(ep: Episode, stack: int) -> tuple[str, int]:
+    """(one of KINDS, the cycle's period or 0) for an episode played to its end by an agent with a
+    `stack`-frame input."""
+    if ep.outcome == SUCCESS:
+        return "success", 0
+    if ep.pick_step is not None and ep.pick_step >= 0:
+        return "wrong outcome", 0
+    period = cycle_period(ep.frames, stack)
+    return ("cycling" if period else "searching"), period
+
+
 def classify(ep: Episode, stack: int) -> str:
     """One of KINDS for an episode played to its end by an agent with a `stack`-frame input."""
-    if ep.outcome == SUCCESS:
-        return "success"
-    if ep.pick_step is not None and ep.pick_step >= 0:
-        return "wrong outcome"
-    return "cycling" if cycle_period(ep.frames, stack) else "searching"
+    return end_of(ep, stack)[0]
