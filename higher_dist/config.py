@@ -31,13 +31,15 @@ def is_babyai_world(name: str) -> bool:
 
 PROFILES = ("default", "paper")  # ours (docs/decisions.md) or the paper's (docs/paper_settings.md)
 FUSIONS = ("film", "concat")
+CORES = ("stack", "gru")  # network.core
 TARGET_UPDATES = ("period", "polyak")
 RATIO_COUNTS = ("env_frames", "transitions")
 EXPLORATION_KINDS = ("apex", "linear")
 RELABEL_STRATEGIES = ("none", "expert", "noisy", "learned")
 # The fields that take one of a few words, by dotted path: `validate` and docs/configuration.md read this.
 CHOICES: dict[str, tuple[str, ...]] = {
-    "preset": PRESETS, "profile": PROFILES, "network.fusion": FUSIONS, "dqn.target_update": TARGET_UPDATES,
+    "preset": PRESETS, "profile": PROFILES, "network.fusion": FUSIONS, "network.core": CORES,
+    "dqn.target_update": TARGET_UPDATES,
     "replay.ratio_counts": RATIO_COUNTS, "exploration.kind": EXPLORATION_KINDS,
     "relabel.strategy": RELABEL_STRATEGIES,
 }
@@ -70,6 +72,7 @@ class NetworkConfig:
     embed_dim: int = 8  # cell embedding width: a vector per (channel, value), summed (BabyAI 1.1 bag of words)
     conv_channels: tuple[int, ...] = (16, 32)  # channels of the view's conv layers
     frame_stack: int = 4  # past views stacked into the input (1: none)
+    core: str = "stack"  # memory: stack (the last frame_stack views) | gru (a GRU over the whole episode; frame_stack 1)
     fusion: str = "film"  # how the instruction meets the view: film | concat
     film_blocks: int = 0  # residual FiLM blocks h + relu(FiLM(conv(h))) after the convs; 0: FiLM on the last conv
     word_embed_dim: int = 16  # word embedding of the instruction
@@ -81,7 +84,8 @@ class NetworkConfig:
 
 @dataclass(frozen=True)
 class DQNConfig:
-    batch_size: int = 256  # transitions per update
+    batch_size: int = 256  # transitions per update (network.core=stack)
+    sequence_batch: int = 8  # whole episodes per update (network.core=gru)
     lr: float = 5e-4  # Adam learning rate
     lr_decay_frames: int = 0  # > 0: lr falls linearly to lr * lr_end_fraction over this many env frames
     lr_end_fraction: float = 0.1  # where the lr decay ends, as a fraction of lr
@@ -307,6 +311,9 @@ def validate(cfg: Config) -> None:
     w = cfg.world
     n = cfg.network
     _check(n.frame_stack >= 1, f"network.frame_stack: must be >= 1, got {n.frame_stack}")
+    _check(n.core != "gru" or n.frame_stack == 1,
+           f"network.frame_stack: network.core=gru reads one view per step, set network.frame_stack=1 "
+           f"(got {n.frame_stack})")
     _check(n.head_init_scale > 0, f"network.head_init_scale: must be > 0, got {n.head_init_scale}")
     _check(len(n.conv_channels) >= 1, "network.conv_channels: needs at least one layer")
     _check(n.film_blocks >= 0, f"network.film_blocks: must be >= 0 (0: FiLM on the last conv), got {n.film_blocks}")
@@ -314,6 +321,7 @@ def validate(cfg: Config) -> None:
            f"network.film_blocks: {n.film_blocks} block(s) need network.fusion=film, got {n.fusion!r}")
     d = cfg.dqn
     _check(d.batch_size >= 1, f"dqn.batch_size: must be >= 1, got {d.batch_size}")
+    _check(d.sequence_batch >= 1, f"dqn.sequence_batch: must be >= 1, got {d.sequence_batch}")
     _check(d.lr > 0, f"dqn.lr: must be > 0, got {d.lr}")
     _check(d.lr_decay_frames >= 0, f"dqn.lr_decay_frames: must be >= 0 (0: constant lr), got {d.lr_decay_frames}")
     _check(0.0 < d.lr_end_fraction <= 1.0, f"dqn.lr_end_fraction: must be in (0, 1], got {d.lr_end_fraction}")

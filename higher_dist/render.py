@@ -28,6 +28,7 @@ from higher_dist.config import COLORS, SHADES, SIZES, TYPES, ConfigError, from_d
 from higher_dist.config_flags import DefaultsHelp
 from higher_dist import render_babyai
 from higher_dist.learning.episode import Episode
+from higher_dist.learning.episode_ends import judged_stack
 from higher_dist.learning.hindsight.generator_data import generator_inputs
 from higher_dist.world.spec import DEFAULT_SPEC, SUCCESS, TIMEOUT, WorldSpec
 from higher_dist.world.grid import DIRECTION_VECTORS, KIND_BALL, KIND_KEY, KIND_WALL, cell_attrs
@@ -179,7 +180,7 @@ def relabel_text(strategy, note: str, ep: Episode, rng: np.random.Generator, spe
 def watch(cfg, policy, episodes: int, goal_set: str, seed: int, tile: int = 24) -> list[Watched]:
     """One greedy episode per environment of a batch of `episodes`, with the full state at every step
     (on a BabyAI level: minigrid's picture, `tile` pixels per cell)."""
-    from higher_dist.learning.acting import EpisodeCollector
+    from higher_dist.learning.acting import EpisodeCollector, q_values
 
     if episodes < 1:
         return []  # --goal-set both with one episode: no held-out one
@@ -199,8 +200,7 @@ def watch(cfg, policy, episodes: int, goal_set: str, seed: int, tile: int = 24) 
             for i in np.flatnonzero(running):
                 out[i].frames.append(Snapshot(world.room_cells(i).copy(), tuple(int(v) for v in pos[i]),
                                               int(dirs[i]), step))
-        obs, mission = collector.observation()
-        actions = policy(obs, mission).argmax(axis=1)
+        actions = q_values(policy, collector).argmax(axis=1)
         finished = collector.step(actions)
         # A finished environment starts its next episode at once, at step 0; the collector lists the
         # finished episodes in environment order.
@@ -346,7 +346,7 @@ def tally_main(args) -> int:
     except ConfigError as e:
         return _die(str(e))
     episodes = tally.play(cfg, policy, args.tally, frames, args.goal_set, args.epsilon)
-    table = tally.Tally.of(spec, episodes, cfg.network.frame_stack)
+    table = tally.Tally.of(spec, episodes, judged_stack(cfg.network.frame_stack, cfg.network.core))
     acting = f"epsilon {args.epsilon:g}" if args.epsilon else "greedy"
     goals = "the level's missions" if spec.family == "babyai" else f"{args.goal_set} goals"
     print(f"{run_dir}: {cfg.preset} on {cfg.world.name} @ {frames:,} frames, {args.weights} weights, {acting}, "

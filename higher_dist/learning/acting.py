@@ -15,10 +15,11 @@ import torch
 from higher_dist import metrics as m
 from higher_dist.config import NetworkConfig, WorldConfig
 from higher_dist.learning.episode import SUCCESS, Episode
-from higher_dist.learning.episode_ends import classify
+from higher_dist.learning.episode_ends import classify, judged_stack
 from higher_dist.learning.exploration import Explorer, epsilon_greedy
 from higher_dist.learning.devices import resolve_device
-from higher_dist.learning.networks import QNetwork, load_weights_numpy
+from higher_dist.learning.networks import load_weights_numpy
+from higher_dist.learning.recurrent import q_network
 from higher_dist.world.batched import batched_world
 from higher_dist.world.spec import DEFAULT_SPEC, RUNNING, WorldSpec
 
@@ -48,6 +49,11 @@ class EpisodeCollector:
     def observation(self) -> tuple[np.ndarray, np.ndarray]:
         """The policy's input: (B, k, V, V, 4) uint8 frame stacks and (B, L) mission tokens."""
         return self.stack, self.mission
+
+    def starts(self) -> np.ndarray:
+        """(B,) bool: the environments whose current view is their episode's first (a recurrent policy
+        starts its state afresh there)."""
+        return self._t == 0
 
     def step(self, actions: np.ndarray) -> list[Episode]:
         """Step every environment once; return the episodes that finished on this step."""
@@ -86,9 +92,11 @@ class EpisodeCollector:
 class TorchQFunction:
     """Batched greedy Q-values from a QNetwork whose weights arrive as numpy arrays (actors, eval)."""
 
+    recurrent = False  # called as (obs, mission); a recurrent policy also takes the episode starts
+
     def __init__(self, net_cfg: NetworkConfig, spec: WorldSpec = DEFAULT_SPEC, device: str = "cpu"):
         self.device = resolve_device(device)
-        self.net = QNetwork(net_cfg, spec).to(self.device).eval()
+        self.net = q_network(net_cfg, spec).to(self.device).eval()
 
     def load(self, arrays: dict[str, np.ndarray]) -> None:
         load_weights_numpy(self.net, arrays)
@@ -100,13 +108,58 @@ class TorchQFunction:
         return self.net(o, m).float().cpu().numpy()
 
 
+class RecurrentQFunction(TorchQFunction):
+    """A recurrent Q-network (network.core=gru) stepped one view at a time, with a state per environment
+    that starts at zero on each episode's first view, as the learner unrolls episodes from their start.
+    New weights apply from the next step; the running state is kept."""
+
+    recurrent = True
+
+    def __init__(self, net_cfg: NetworkConfig, spec: WorldSpec = DEFAULT_SPEC, device: str = "cpu"):
+        super().__init__(net_cfg, spec, device)
+        self.state: torch.Tensor | None = None  # (1, B, hidden)
+
+    @torch.no_grad()
+    def __call__(self, obs: np.ndarray, mission: np.ndarray, starts: np.ndarray | None = None) -> np.ndarray:
+        """Q-values (B, A) of views `obs` (B, 1, V, V, 4); `starts` (B,) bool marks first views (None:
+        all are). A batch of another size than the state's must be all first views."""
+        b = obs.shape[0]
+        starts = np.ones(b, bool) if starts is None else np.asarray(starts, bool)
+        if starts.shape != (b,):
+            raise ValueError(f"starts: expected ({b},) flags, got {starts.shape}")
+        if self.state is None or self.state.shape[1] != b:
+            if not starts.all():
+                raise ValueError(f"a recurrent policy got {b} environments mid-episode, its state holds "
+                                 f"{0 if self.state is None else self.state.shape[1]}")
+            self.state = torch.zeros(1, b, self.net.cfg.hidden, device=self.device)
+        elif starts.any():
+            self.state[:, torch.from_numpy(starts).to(self.device)] = 0.0
+        o = torch.from_numpy(np.ascontiguousarray(obs)).to(self.device)
+        m = torch.from_numpy(np.ascontiguousarray(mission)).long().to(self.device)
+        q, self.state = self.net.q_sequence(o, self.net.encode_mission(m), self.state)
+        return q[:, 0].float().cpu().numpy()
+
+
+def make_policy(net_cfg: NetworkConfig, spec: WorldSpec = DEFAULT_SPEC, device: str = "cpu") -> TorchQFunction:
+    """The acting policy for `net_cfg`'s core."""
+    kind = RecurrentQFunction if net_cfg.core == "gru" else TorchQFunction
+    return kind(net_cfg, spec, device=device)
+
+
+def q_values(q_fn: QFunction, collector: EpisodeCollector) -> np.ndarray:
+    """`q_fn` on the collector's current input (with the episode starts, for a recurrent policy)."""
+    obs, mission = collector.observation()
+    if getattr(q_fn, "recurrent", False):
+        return q_fn(obs, mission, starts=collector.starts())
+    return q_fn(obs, mission)
+
+
 def act(collector: EpisodeCollector, q_fn: QFunction, eps: np.ndarray, rng: np.random.Generator,
         explorer: Explorer | None = None) -> list[Episode]:
     """One epsilon-greedy step of every environment of the collector (temporally extended when the
     explorer holds exploratory actions over several steps)."""
-    obs, mission = collector.observation()
     choose = explorer or epsilon_greedy  # the same call: (q_values, eps, rng) -> actions
-    episodes = collector.step(choose(q_fn(obs, mission), eps, rng))
+    episodes = collector.step(choose(q_values(q_fn, collector), eps, rng))
     if explorer is not None:
         explorer.episodes_ended(collector.last_outcome != RUNNING)
     return episodes
@@ -133,8 +186,7 @@ def first_episodes(q_fn: QFunction, world_cfg: WorldConfig, frame_stack: int, go
         collector = EpisodeCollector(world_cfg, len(batch_seeds), frame_stack, goal_set=goal_set, env_seeds=batch_seeds)
         first: list[Episode | None] = [None] * len(batch_seeds)
         while any(ep is None for ep in first):
-            obs, mission = collector.observation()
-            q = q_fn(obs, mission)
+            q = q_values(q_fn, collector)
             finished = collector.step(epsilon_greedy(q, epsilon, rng) if epsilon > 0 else q.argmax(axis=1))
             # The collector lists the episodes that ended on this step in environment order.
             for i, ep in zip(np.flatnonzero(collector.last_outcome != RUNNING), finished):
@@ -166,13 +218,13 @@ def evaluate_goal_sets(q_fn: QFunction, cfg, env_seeds: Sequence[int], suffix: s
     (learning/episode_ends.py), one episode per seed of `env_seeds` in each goal set.
     `suffix` names another policy scored on the same goals (metrics.AVERAGED_SUFFIX for the averaged
     weights)."""
-    k = cfg.network.frame_stack
+    k, judged = cfg.network.frame_stack, judged_stack(cfg.network.frame_stack, cfg.network.core)
     out: dict[str, float] = {}
     goal_sets = [("train", m.SUCCESS_EVAL_TRAIN, m.CYCLING_EVAL_TRAIN)]
     if WorldSpec.of(cfg.world).has_heldout:  # a BabyAI level is scored on its own missions only
         goal_sets.append(("heldout", m.SUCCESS_EVAL_HELDOUT, m.CYCLING_EVAL_HELDOUT))
     for goal_set, key, cycling_key in goal_sets:
-        rate, se, cycling = _rates(first_episodes(q_fn, cfg.world, k, goal_set, env_seeds), k)
+        rate, se, cycling = _rates(first_episodes(q_fn, cfg.world, k, goal_set, env_seeds), judged)
         out[key + suffix] = round(rate, 4)
         out[key + suffix + m.SE_SUFFIX] = round(se, 4)
         out[cycling_key + suffix] = round(cycling, 4)

@@ -12,7 +12,7 @@ import numpy as np
 
 from higher_dist import metrics as m
 from higher_dist.config import Config
-from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate_goal_sets
+from higher_dist.learning.acting import EpisodeCollector, TorchQFunction, evaluate_goal_sets, make_policy
 from higher_dist.learning.exploration import Explorer, actor_epsilons
 from higher_dist.learning.learner import Learner
 from higher_dist.learning.hindsight.relabel import RelabelStrategy, make_relabel_strategy
@@ -99,7 +99,7 @@ class AgentBuilder:
                                 env_seeds=self.seeds.actor_env_seeds(actor, n_envs))
 
     def policy(self, device: str = "cpu") -> TorchQFunction:
-        return TorchQFunction(self.cfg.network, self.spec, device=device)
+        return make_policy(self.cfg.network, self.spec, device=device)
 
     def exploration_rng(self, actor: int) -> np.random.Generator:
         return np.random.default_rng(self.seeds.actor_exploration(actor))

@@ -20,6 +20,7 @@ from higher_dist.learning.compiled_loss import CompiledLoss
 from higher_dist.learning.devices import resolve_device
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 from higher_dist.learning.networks import QNetwork, load_weights_numpy, weights_numpy
+from higher_dist.learning.recurrent import q_network, sequence_dqn_terms
 
 __all__ = ["TransitionBatchLike", "dqn_terms", "dqn_loss", "learning_rate_at", "DQNUpdater"]
 
@@ -27,6 +28,10 @@ __all__ = ["TransitionBatchLike", "dqn_terms", "dqn_loss", "learning_rate_at", "
 # The tensors the loss reads from a batch, and their dtypes (built once: `_tensors` runs every update).
 _BATCH_DTYPES = {"obs": torch.uint8, "mission": torch.long, "action": torch.long, "reward": torch.float32,
                  "discount": torch.float32, "next_obs": torch.uint8, "weights": torch.float32}
+# The same for a batch of whole episodes (network.core=gru; learning/episode_sampling.py).
+_SEQUENCE_DTYPES = {"frames": torch.uint8, "mission": torch.long, "action": torch.long, "reward": torch.float32,
+                    "discount": torch.float32, "next_step": torch.long, "mask": torch.float32,
+                    "weights": torch.float32}
 
 
 class TransitionBatchLike(Protocol):
@@ -151,8 +156,8 @@ class DQNUpdater:
         # Seeded initialisation without resetting the caller's global torch RNG.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.online = QNetwork(net_cfg, spec).to(self.device)
-        self.target = QNetwork(net_cfg, spec).to(self.device)
+            self.online = q_network(net_cfg, spec).to(self.device)
+        self.target = q_network(net_cfg, spec).to(self.device)
         self.target.load_state_dict(self.online.state_dict())
         self.target.requires_grad_(False)
         self.target.eval()
@@ -168,13 +173,16 @@ class DQNUpdater:
         self.optimizer = _make_adam(self._online_params, dqn_cfg.lr, dqn_cfg.adam_eps)
         self.updates = 0
         self.skipped_updates = 0  # steps refused for a non-finite gradient
+        self.recurrent = net_cfg.core == "gru"
+        self._fields = _SEQUENCE_DTYPES if self.recurrent else _BATCH_DTYPES
         self.compiled: CompiledLoss | None = None
-        if dqn_cfg.compile:
+        # The episode loss runs eager: its shapes change with the longest episode of each batch.
+        if dqn_cfg.compile and not self.recurrent:
             self.compiled = CompiledLoss(dqn_terms, self.online, self.target, huber_delta=dqn_cfg.huber_delta,
                                          double=dqn_cfg.double, joint_online=dqn_cfg.joint_online)
 
     def _tensors(self, batch: Any) -> dict[str, torch.Tensor]:
-        fields = _BATCH_DTYPES
+        fields = self._fields
         if self.device.type == "cpu":
             # from_numpy shares memory (no copy); `.to` converts only where the dtype differs.
             return {name: torch.from_numpy(np.ascontiguousarray(getattr(batch, name))).to(dtype)
@@ -191,7 +199,8 @@ class DQNUpdater:
         return out
 
     def update(self, batch: Any) -> tuple[np.ndarray, dict[str, float]]:
-        """One gradient step on `batch` (see `TransitionBatchLike`); returns (new priorities (B,), metrics)."""
+        """One gradient step on `batch` (see `TransitionBatchLike`, or a SequenceBatch for the recurrent core);
+        returns (new priorities, (B,) or (B, T), metrics)."""
         tensors = self._tensors(batch)
         self.online.train()
         loss, priorities, q_mean, y_mean = self._loss_terms(tensors)
@@ -220,6 +229,10 @@ class DQNUpdater:
     def _loss_terms(self, tensors: dict[str, torch.Tensor]):
         """dqn_terms, compiled once the background compile is ready (started by the first batch, whose
         shapes it specialises to), eager until then, for other shapes, or when it failed."""
+        if self.recurrent:
+            self._ran_compiled = False
+            return sequence_dqn_terms(self.online, self.target, huber_delta=self.cfg.huber_delta,
+                                      double=self.cfg.double, **tensors)
         c = self.compiled
         if c is not None and not c.started:
             c.start(tensors)

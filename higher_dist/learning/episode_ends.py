@@ -7,6 +7,10 @@ P steps earlier (P <= MAX_PERIOD): the world does not change while nothing is ac
 policy is a function of its input and its mission, so from there it repeats the same P actions until
 the time-out. Period 1 is an action that changes nothing (a step into a wall), 2 a step back and forth,
 4 a turn on the spot. Relabelling cannot help an episode that achieved nothing.
+
+A recurrent policy (network.core=gru) reads the whole episode, so a repeated input never recurs; its
+episodes are judged on their last RECURRENT_JUDGED_STACK views, as a frame-stack policy's would be:
+the same actions repeated over the same views until the time-out.
 """
 from __future__ import annotations
 
@@ -16,6 +20,13 @@ from higher_dist.learning.episode import SUCCESS, Episode
 
 MAX_PERIOD = 16  # the longest cycle looked for: 4 turns make a turn on the spot, 16 steps a small loop walked
 KINDS = ("success", "wrong outcome", "cycling", "searching")
+RECURRENT_JUDGED_STACK = 4  # the frame-stack default: a recurrent agent's cycles read on the same scale
+
+
+def judged_stack(frame_stack: int, core: str) -> int:
+    """The views a policy's episodes are judged on: its own input, or RECURRENT_JUDGED_STACK for a
+    recurrent core (NetworkConfig.core)."""
+    return RECURRENT_JUDGED_STACK if core == "gru" else frame_stack
 
 
 def cycle_period(frames: np.ndarray, stack: int, max_period: int = MAX_PERIOD) -> int:

@@ -28,6 +28,7 @@ class Learner:
                                         gamma=cfg.dqn.gamma, spec=self.spec, seed=seeds.learner_replay)
         self.dqn = DQNUpdater(cfg.network, cfg.dqn, device=device or cfg.device, spec=self.spec,
                               seed=seeds.learner_init)
+        self.recurrent = cfg.network.core == "gru"  # trained on whole episodes (learning/recurrent.py)
         self.limiter = SamplesPerInsertLimiter(cfg.replay.samples_per_insert, cfg.replay.min_size)
         self.frames = 0  # env frames the actors reported (original episodes only)
         self.episodes = 0
@@ -81,13 +82,21 @@ class Learner:
             self.dqn.set_learning_rate(learning_rate_at(self.cfg.dqn, self.frames))
         priorities, metrics = self.dqn.update(batch)
         self._settle()
-        self.replay.update_priorities(batch.indices, priorities, batch.generations)
-        self.limiter.record_sample(batch_size)
+        if self.recurrent:  # whole episodes: priorities of the real steps, samples counted as steps trained
+            valid = batch.valid
+            self.replay.update_priorities(batch.indices[valid], priorities[valid], batch.generations[valid])
+            self.limiter.record_sample(batch.transitions)
+        else:
+            self.replay.update_priorities(batch.indices, priorities, batch.generations)
+            self.limiter.record_sample(batch_size)
         self.last_metrics = metrics
         return metrics
 
     def _sample(self):
-        return self.replay.sample(self.cfg.dqn.batch_size, self.replay.beta_at(self.frames))
+        beta = self.replay.beta_at(self.frames)
+        if self.recurrent:
+            return self.replay.sample_episodes(self.cfg.dqn.sequence_batch, beta)
+        return self.replay.sample(self.cfg.dqn.batch_size, beta)
 
     def _settle(self) -> None:
         """Wait for an in-flight prefetch, so the replay is not read and written at once."""

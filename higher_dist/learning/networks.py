@@ -297,16 +297,23 @@ class QNetwork(nn.Module):
     def q_values(self, views: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
         """Q-values from views and precomputed `encode_mission` features: obs and next_obs of a
         transition share one mission, so the loss encodes it once per network."""
+        return self.head(self.hidden_features(views, text))
+
+    def hidden_features(self, views: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
+        """(B, hidden) features of views fused with the instruction, before the Q head."""
         if self.fusion == "film":
             delta_gamma, beta = self.film(text).chunk(2, dim=1)
             features = self.view(views, film=(1.0 + delta_gamma, beta)).flatten(1)
         else:
             features = torch.cat([self.view(views).flatten(1), text], dim=1)
-        h = F.relu(self.trunk(features))
+        return F.relu(self.trunk(features))
+
+    def head(self, h: torch.Tensor) -> torch.Tensor:
+        """Q-values (..., n_actions) from hidden features (..., hidden): dueling or plain."""
         if not self.dueling:
             return self.q(h)
         advantage = self.advantage(h)
-        return self.value(h) + advantage - advantage.mean(dim=1, keepdim=True)
+        return self.value(h) + advantage - advantage.mean(dim=-1, keepdim=True)
 
 
 def weights_numpy(net: nn.Module) -> dict[str, np.ndarray]:

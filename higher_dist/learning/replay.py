@@ -28,11 +28,12 @@ import numpy as np
 
 from higher_dist.config import ReplayConfig
 from higher_dist.learning.episode import OUTCOME_NAMES, Episode
+from higher_dist.learning.episode_sampling import EpisodeSampling, SequenceBatch
 from higher_dist.learning.exploration import linear_schedule
 from higher_dist.learning.sum_tree import SumTree
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
-__all__ = ["PrioritizedReplay", "SumTree", "TransitionBatch", "ORIGINS"]
+__all__ = ["PrioritizedReplay", "SumTree", "TransitionBatch", "SequenceBatch", "ORIGINS"]
 
 # Composition keys; an episode's origin code is its index here.
 ORIGINS = (*OUTCOME_NAMES, "relabelled")
@@ -58,7 +59,7 @@ class TransitionBatch:
         return int(self.indices.shape[0])
 
 
-class PrioritizedReplay:
+class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, for the recurrent core
     def __init__(self, cfg: ReplayConfig, frame_stack: int, n_step: int, gamma: float,
                  spec: WorldSpec = DEFAULT_SPEC, seed: int = 0):
         if cfg.capacity < 2:
@@ -88,7 +89,6 @@ class PrioritizedReplay:
         self._history = np.zeros(c, dtype=np.uint8)  # min(t, 255): earlier frames a stack may reach
         self._episode = np.full(c, -1, dtype=np.int32)  # episode record, -1 = free slot
         self._generation = np.full(c, -1, dtype=np.int64)  # serial of the write that filled the slot
-
         # Per episode record: a ring indexed by episode serial % n_records. Every episode takes >= 2
         # slots, so at most capacity // 2 are alive at once and live serials never collide.
         self._n_records = c // 2 + 1
