@@ -85,7 +85,7 @@ class NetworkConfig:
 @dataclass(frozen=True)
 class DQNConfig:
     batch_size: int = 256  # transitions per update (network.core=stack)
-    sequence_batch: int = 8  # whole episodes per update (network.core=gru)
+    sequence_batch: int = 16  # whole episodes per update (network.core=gru): ~300 transitions on the paper world
     lr: float = 5e-4  # Adam learning rate
     lr_decay_frames: int = 0  # > 0: lr falls linearly to lr * lr_end_fraction over this many env frames
     lr_end_fraction: float = 0.1  # where the lr decay ends, as a fraction of lr

@@ -184,17 +184,17 @@ def make_core(batch_size: int, lever: Lever, cfg=None, threads: int = 1):
 def time_updates(core, seconds: float, warmup: int = 5, bf16: bool = False) -> dict[str, float]:
     """Wall and CPU samples/s of `core.update` over `seconds` of wall time."""
     autocast = torch.autocast("cpu", dtype=torch.bfloat16) if bf16 else contextlib.nullcontext()
-    b = core.cfg.dqn.batch_size
     with autocast:
         for _ in range(warmup):
             core.update()
-        n = 0
+        n, sampled0 = 0, core.limiter.sampled  # samples as the ratio counts them (a recurrent batch varies)
         wall0, cpu0 = time.perf_counter(), time.process_time()
         while time.perf_counter() - wall0 < seconds:
             core.update()
             n += 1
         wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
-    return {"samples_per_s": n * b / wall, "cpu_samples_per_s": n * b / cpu, "updates_per_s": n / wall}
+    samples = core.limiter.sampled - sampled0
+    return {"samples_per_s": samples / wall, "cpu_samples_per_s": samples / cpu, "updates_per_s": n / wall}
 
 
 def measure_updates_per_s(batch_size: int, seconds: float = 5.0, cfg=None, warmup: int = 5, threads: int = 1) -> float:
@@ -226,8 +226,8 @@ def run_table(levers: list[Lever], sizes: list[int], seconds: float, repeat: int
         for _ in range(repeat):
             for key, core in cores.items():
                 runs[key].append(time_updates(core, seconds, bf16=key[0].bf16))
-        if bound_size in sizes:
-            core = cores[levers[0], bound_size]
+        core = cores.get((levers[0], bound_size))
+        if core is not None and not core.recurrent:  # FLOPs are counted for the frame-stack network
             figures = compute_bound.bound(core.dqn, core.dqn._tensors(core.replay.sample(bound_size, 1.0)))
     finally:
         for core in cores.values():
@@ -297,6 +297,11 @@ def main(argv: list[str] | None = None) -> int:
         summary[f"b{b}_cpu_samples_per_s"] = round(cell["cpu_samples_per_s"])
     figures = table["bound"]
     measured = {lv.name: table[lv.name, bound_size]["cpu_samples_per_s"] for lv in levers}
+    if figures is None:
+        print("compute bound: counted for the frame-stack network only (network.core=stack)")
+        summary["network"] = dataclasses.asdict(cfg.network)
+        print(json.dumps(summary))
+        return 0
     print("\n".join(compute_bound.bound_lines(figures, bound_size, measured)))
     summary["bound"] = {"batch_size": bound_size, **{k: round(v, 1) for k, v in figures.items()},
                         "ratio": round(measured[defaults.name] / figures["bound_samples_per_s"], 3)}

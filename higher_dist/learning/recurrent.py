@@ -34,14 +34,24 @@ class RecurrentQNetwork(QNetwork):
         super().__init__(cfg, spec)
         self.memory = nn.GRU(cfg.hidden, cfg.hidden, batch_first=True)
 
-    def q_sequence(self, views: torch.Tensor, text: torch.Tensor,
-                   state: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def q_sequence(self, views: torch.Tensor, text: torch.Tensor, state: torch.Tensor | None = None,
+                   real: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Q-values of every step of B sequences: views (B, T, V, V, 4), text (B, text_hidden) from
-        `encode_mission`, state (1, B, hidden) or None for zeros -> ((B, T, n_actions), state after T)."""
+        `encode_mission`, state (1, B, hidden) or None for zeros -> ((B, T, n_actions), state after T).
+
+        real (B, T) bool, optional: the views worth encoding. The others (padding past an episode's end)
+        get zero features: they come after every real step, so they change no real step's Q-value, and
+        a batch padded to its longest episode skips most of its encoder work."""
         b, t = views.shape[:2]
         frames = views.reshape(b * t, 1, *views.shape[2:])
         # Every step of a sequence shares its mission: repeat its encoding, not the encoder.
-        x = self.hidden_features(frames, text.repeat_interleave(t, dim=0)).view(b, t, -1)
+        texts = text.repeat_interleave(t, dim=0)
+        if real is None:
+            x = self.hidden_features(frames, texts).view(b, t, -1)
+        else:
+            keep = real.reshape(-1)
+            x = views.new_zeros((b * t, self.trunk.out_features), dtype=texts.dtype)
+            x = x.index_put((keep,), self.hidden_features(frames[keep], texts[keep])).view(b, t, -1)
         remembered, state = self.memory(x, state)
         return self.head(x + remembered), state
 
@@ -80,10 +90,12 @@ def sequence_dqn_terms(
     Both networks unroll from each episode's first view, so Q(s_t) is the value given all the episode
     has shown up to t. The loss is the weighted Huber loss averaged over real steps.
     """
-    q_all, _ = online.q_sequence(frames, online.encode_mission(mission))  # (B, T+1, A)
+    # Frame 0 of every episode and frame t+1 of each real step t: what the encoders need to see.
+    real = torch.cat([torch.ones_like(mask[:, :1]), mask], dim=1) > 0
+    q_all, _ = online.q_sequence(frames, online.encode_mission(mission), real=real)  # (B, T+1, A)
     q = q_all[:, :-1].gather(2, action.unsqueeze(2)).squeeze(2)
     with torch.no_grad():
-        q_target_all, _ = target.q_sequence(frames, target.encode_mission(mission))
+        q_target_all, _ = target.q_sequence(frames, target.encode_mission(mission), real=real)
         at_next = next_step.unsqueeze(2).expand(-1, -1, q_all.shape[2])
         q_next_target = q_target_all.gather(1, at_next)  # (B, T, A): row t holds Q_target(s_{t+m})
         chooser = q_all.detach().gather(1, at_next) if double else q_next_target
