@@ -70,6 +70,9 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
         cfg = _on_a_babyai_level(cfg)
     if profile == "paper":
         cfg = paper_profile(cfg)
+    if overrides.get("network.core") == "gru":
+        # The recurrent core reads one view per step: no frame stack, unless a flag asks for one (refused).
+        overrides = {"network.frame_stack": 1, **overrides}
     cfg = override(cfg, **overrides)
     cfg = from_dict(cfg.to_dict())  # types first: --set dqn.lr=fast is refused, not a TypeError
     return cfg

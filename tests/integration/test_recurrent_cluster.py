@@ -15,7 +15,7 @@ from higher_dist.rundir import RunDir
 pytestmark = pytest.mark.slow
 
 FIRST, MORE = 4000, 6000
-GRU = ["--set", "network.core=gru", "--set", "network.frame_stack=1"]
+GRU = ["--set", "network.core=gru"]  # the frame stack of 1 comes with it
 
 
 def cluster(run_dir, *flags, timeout=240.0) -> subprocess.CompletedProcess:

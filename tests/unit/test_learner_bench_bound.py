@@ -79,3 +79,16 @@ def test_learner_bench_takes_network_options_and_prints_the_bound(capsys):
 def test_learner_bench_refuses_a_bad_network_option_naming_it():
     with pytest.raises(ConfigError, match="network.film_blocks"):
         bench_config(["network.film_blocks=-1"])
+
+
+def test_learner_bench_measures_the_recurrent_core_in_samples_the_ratio_counts(capsys):
+    argv = ["learner", "--only", "--batch-sizes", "8", "--seconds", "0.2", "--set", 'network.core="gru"',
+            "--set", "network.frame_stack=1", "--set", "dqn.sequence_batch=2"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    last = json.loads(out[-1])
+    assert last["network"]["core"] == "gru" and "bound" not in last
+    cell = last["rows"]["eager (all levers off)"]["b8"]
+    # Two whole episodes of 5-40 steps per update: between 10 and 80 samples each, not the batch size.
+    assert 10 <= cell["samples_per_s"] / cell["updates_per_s"] <= 80
+    assert any("frame-stack network only" in line for line in out)

@@ -173,6 +173,10 @@ def test_greedy_evaluation_of_a_recurrent_policy_is_repeatable():
 
 
 def test_the_config_refuses_a_recurrent_core_on_a_frame_stack():
+    # Asked for alone, the recurrent core comes without a frame stack; with one asked for, it is refused.
+    assert make_config("her", "paper", **{"network.core": "gru"}).network.frame_stack == 1
+    with pytest.raises(ConfigError, match="network.frame_stack"):
+        make_config("her", "paper", **{"network.core": "gru", "network.frame_stack": 4})
     cfg = make_config("her", "small")
     with pytest.raises(ConfigError, match="network.frame_stack"):
         validate(dataclasses.replace(cfg, network=dataclasses.replace(cfg.network, core="gru")))
