@@ -20,6 +20,7 @@ import contextlib
 import dataclasses
 import json
 import statistics
+import sys
 import time
 from types import SimpleNamespace
 
@@ -325,6 +326,10 @@ def _network_shape(args, sizes: list[int]) -> int:
     change is judged by before a learning run decides whether it keeps its success."""
     torch.set_num_threads(args.threads)
     net_cfg = dataclasses.replace(NetworkConfig(), **dict(args.net))
+    if net_cfg.core != "stack":  # synthetic transitions carry frame stacks, not whole episodes
+        print(f"higher-bench learner: --net core={net_cfg.core} is measured on whole episodes from replay: "
+              f"use --set network.core={net_cfg.core}", file=sys.stderr)
+        return 2
     dqn_cfg = DQNConfig(compile=False)
     rng = np.random.default_rng(args.seed)
     print(f"network {dataclasses.asdict(net_cfg)}, "

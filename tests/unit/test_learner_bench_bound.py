@@ -92,3 +92,8 @@ def test_learner_bench_measures_the_recurrent_core_in_samples_the_ratio_counts(c
     # Two whole episodes of 5-40 steps per update: between 10 and 80 samples each, not the batch size.
     assert 10 <= cell["samples_per_s"] / cell["updates_per_s"] <= 80
     assert any("frame-stack network only" in line for line in out)
+
+
+def test_learner_bench_sends_the_recurrent_core_from_the_raw_step_to_the_replay_path(capsys):
+    assert main(["learner", "--net", "core=gru", "--net", "frame_stack=1", "--batch-sizes", "8"]) == 2
+    assert "--set network.core=gru" in capsys.readouterr().err
