@@ -53,3 +53,13 @@ def test_higher_relabels_with_its_learned_generator():
     assert m["generator_val_accuracy"] is not None and m["generator_val_accuracy"] >= 0.5
     assert final["relabelled_episodes"] > 0
     assert m["relabel_accuracy"] is not None and m["relabel_accuracy"] >= 0.5
+
+
+def test_the_recurrent_core_learns_the_small_world_well_above_chance():
+    cfg, runner, records = run("her", 12_000, **{"network.core": "gru", "eval.every_frames": 12_000,
+                                                 "eval.episodes": 64})
+    assert cfg.network.frame_stack == 1 and runner.core.recurrent
+    chance = random_success_rate(cfg)
+    final = records[-1]
+    assert final["success_rate_eval_train"] >= chance + 0.3, (final, chance)
+    assert records[-1]["success_rate_train"] > records[0]["success_rate_train"]
