@@ -187,3 +187,10 @@ def test_the_config_refuses_a_recurrent_core_on_a_frame_stack():
     with pytest.raises(ValueError, match="frame_stack must be 1"):
         RecurrentQNetwork(NetworkConfig(core="gru", frame_stack=4))
     assert isinstance(q_network(GRU), RecurrentQNetwork) and not isinstance(q_network(NetworkConfig()), RecurrentQNetwork)
+
+
+def test_a_recurrent_agents_cycles_are_judged_on_the_frame_stack_defaults_views():
+    from higher_dist.learning.episode_ends import RECURRENT_JUDGED_STACK, judged_stack
+
+    assert judged_stack(1, "gru") == RECURRENT_JUDGED_STACK == NetworkConfig().frame_stack
+    assert judged_stack(8, "stack") == 8 and judged_stack(1, "stack") == 1
