@@ -305,6 +305,13 @@ class RunWatch:
         self.tracker.kill_all()
 
 
+def run_cluster(run_dir, *flags, timeout: float = 240.0) -> subprocess.CompletedProcess:
+    """`higher-cluster` on a fresh port range, without a dashboard, run to its end; output captured."""
+    return subprocess.run(entry("cluster", "--no-dashboard", "--run-dir", str(run_dir), "--port-base",
+                                str(free_base_port()), *map(str, flags)),
+                          capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL)
+
+
 def start_cluster(run_dir: Path, cwd: Path, frames: int, actors: int = 2, extra: Iterable[str] = (),
                   **settings: Any) -> tuple[RunWatch, Proc, int]:
     """A `higher-cluster` with a fresh port range; returns (watch, launcher, base port)."""

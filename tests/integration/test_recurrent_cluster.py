@@ -4,24 +4,16 @@ learner trains on whole episodes and evaluates them, and the run resumes from it
 kept) while a switch back to the frame stack is refused by name."""
 from __future__ import annotations
 
-import subprocess
 
 import pytest
 
-from hd_harness import entry
-from higher_dist.launch.topology import free_base_port
+from hd_harness import run_cluster as cluster
 from higher_dist.rundir import RunDir
 
 pytestmark = pytest.mark.slow
 
 FIRST, MORE = 4000, 6000
 GRU = ["--set", "network.core=gru"]  # the frame stack of 1 comes with it
-
-
-def cluster(run_dir, *flags, timeout=240.0) -> subprocess.CompletedProcess:
-    return subprocess.run(entry("cluster", "--no-dashboard", "--run-dir", str(run_dir), "--port-base",
-                                str(free_base_port()), *map(str, flags)),
-                          capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL)
 
 
 @pytest.fixture(scope="module")

@@ -5,23 +5,15 @@ from the flags. One real cluster run on the small world, resumed as a user would
 from __future__ import annotations
 
 import json
-import subprocess
 
 import pytest
 
-from hd_harness import entry
-from higher_dist.launch.topology import free_base_port
+from hd_harness import run_cluster as cluster
 from higher_dist.rundir import read_metrics
 
 pytestmark = pytest.mark.slow
 
 FIRST, MORE = 3000, 5000
-
-
-def cluster(run_dir, *flags, timeout=240.0) -> subprocess.CompletedProcess:
-    return subprocess.run(entry("cluster", "--no-dashboard", "--run-dir", str(run_dir), "--port-base",
-                                str(free_base_port()), *map(str, flags)),
-                          capture_output=True, text=True, timeout=timeout, stdin=subprocess.DEVNULL)
 
 
 @pytest.fixture(scope="module")
