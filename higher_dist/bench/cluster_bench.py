@@ -104,7 +104,9 @@ def measure_cluster(seconds: float, preset: str, world: str, actors: int | None,
         "layout": end.get("layout"), "learner_threads": layout.learner_threads,
         "envs_per_actor": config["envs_per_actor"], "batch_size": batch,
         "frames_per_s": round(frames / dt, 1), "updates_per_s": round(updates / dt, 2),
-        "samples_per_frame": round(updates * batch / max(frames, 1), 2),
+        # A recurrent learner's update trains whole episodes (a varying count): read the learner's own ratio.
+        "samples_per_frame": (end.get("replay_ratio") if config["network"]["core"] == "gru"
+                              else round(updates * batch / max(frames, 1), 2)),
         "samples_per_insert_target": config["replay"]["samples_per_insert"],
         "weights_lag_updates": round(sum(lags) / len(lags), 1) if lags else None,
         "peak_rss_mib": {role: round(rss / 2**20) for role, rss in sorted(peak.items())},
@@ -127,7 +129,11 @@ def main(argv: list[str] | None = None) -> int:
 
     # The learner alone on as many threads as the cluster's layout gave it: the ratio is then the cost of
     # the system around the learner, not of a different thread count.
-    alone = measure_updates_per_s(result["batch_size"], args.learner_seconds, threads=result["learner_threads"])
+    from higher_dist.config import from_dict
+
+    run_cfg = from_dict(json.loads((Path(result["run_dir"]) / "config.json").read_text()))
+    alone = measure_updates_per_s(result["batch_size"], args.learner_seconds, cfg=run_cfg,
+                                  threads=result["learner_threads"])
     result["learner_alone_updates_per_s"] = round(alone, 2)
     result["learner_ratio"] = round(result["updates_per_s"] / alone, 3) if alone else None
     print(f"cluster benchmark: preset {result['preset']} on the {result['world']} world, "
