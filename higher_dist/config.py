@@ -81,6 +81,11 @@ class NetworkConfig:
     dueling: bool = True  # dueling head (value + advantages)
     head_init_scale: float = 0.01  # the head's output layers start scaled by this, biases at zero (Q ~ 0)
 
+    @property
+    def recurrent(self) -> bool:
+        """The recurrent core: one view per step, trained on whole episodes (learning/recurrent.py)."""
+        return self.core == "gru"
+
 
 @dataclass(frozen=True)
 class DQNConfig:
@@ -311,7 +316,7 @@ def validate(cfg: Config) -> None:
     w = cfg.world
     n = cfg.network
     _check(n.frame_stack >= 1, f"network.frame_stack: must be >= 1, got {n.frame_stack}")
-    _check(n.core != "gru" or n.frame_stack == 1,
+    _check(not n.recurrent or n.frame_stack == 1,
            f"network.frame_stack: network.core=gru reads one view per step, set network.frame_stack=1 "
            f"(got {n.frame_stack})")
     _check(n.head_init_scale > 0, f"network.head_init_scale: must be > 0, got {n.head_init_scale}")

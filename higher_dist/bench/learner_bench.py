@@ -300,13 +300,11 @@ def main(argv: list[str] | None = None) -> int:
     measured = {lv.name: table[lv.name, bound_size]["cpu_samples_per_s"] for lv in levers}
     if figures is None:
         print("compute bound: counted for the frame-stack network only (network.core=stack)")
-        summary["network"] = dataclasses.asdict(cfg.network)
-        print(json.dumps(summary))
-        return 0
-    print("\n".join(compute_bound.bound_lines(figures, bound_size, measured)))
-    summary["bound"] = {"batch_size": bound_size, **{k: round(v, 1) for k, v in figures.items()},
-                        "ratio": round(measured[defaults.name] / figures["bound_samples_per_s"], 3)}
-    summary["bound_ratio"] = summary["bound"]["ratio"]  # the defaults' CPU samples/s over the bound
+    else:
+        print("\n".join(compute_bound.bound_lines(figures, bound_size, measured)))
+        summary["bound"] = {"batch_size": bound_size, **{k: round(v, 1) for k, v in figures.items()},
+                            "ratio": round(measured[defaults.name] / figures["bound_samples_per_s"], 3)}
+        summary["bound_ratio"] = summary["bound"]["ratio"]  # the defaults' CPU samples/s over the bound
     summary["network"] = dataclasses.asdict(cfg.network)
     print(json.dumps(summary))
     return 0
@@ -326,7 +324,7 @@ def _network_shape(args, sizes: list[int]) -> int:
     change is judged by before a learning run decides whether it keeps its success."""
     torch.set_num_threads(args.threads)
     net_cfg = dataclasses.replace(NetworkConfig(), **dict(args.net))
-    if net_cfg.core != "stack":  # synthetic transitions carry frame stacks, not whole episodes
+    if net_cfg.recurrent:  # synthetic transitions carry frame stacks, not whole episodes
         print(f"higher-bench learner: --net core={net_cfg.core} is measured on whole episodes from replay: "
               f"use --set network.core={net_cfg.core}", file=sys.stderr)
         return 2

@@ -142,7 +142,7 @@ class RecurrentQFunction(TorchQFunction):
 
 def make_policy(net_cfg: NetworkConfig, spec: WorldSpec = DEFAULT_SPEC, device: str = "cpu") -> TorchQFunction:
     """The acting policy for `net_cfg`'s core."""
-    kind = RecurrentQFunction if net_cfg.core == "gru" else TorchQFunction
+    kind = RecurrentQFunction if net_cfg.recurrent else TorchQFunction
     return kind(net_cfg, spec, device=device)
 
 

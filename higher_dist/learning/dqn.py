@@ -173,7 +173,7 @@ class DQNUpdater:
         self.optimizer = _make_adam(self._online_params, dqn_cfg.lr, dqn_cfg.adam_eps)
         self.updates = 0
         self.skipped_updates = 0  # steps refused for a non-finite gradient
-        self.recurrent = net_cfg.core == "gru"
+        self.recurrent = net_cfg.recurrent
         self._fields = _SEQUENCE_DTYPES if self.recurrent else _BATCH_DTYPES
         self.compiled: CompiledLoss | None = None
         # The episode loss runs eager: its shapes change with the longest episode of each batch.

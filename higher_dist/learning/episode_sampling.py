@@ -40,6 +40,11 @@ class SequenceBatch:
     def transitions(self) -> int:
         return int(self.mask.sum())
 
+    def priority_update(self, priorities: np.ndarray) -> tuple:
+        """(slots, priorities, generations) for `update_priorities`: the real steps of (B, T) priorities."""
+        valid = self.valid
+        return self.indices[valid], priorities[valid], self.generations[valid]
+
     def __len__(self) -> int:
         return self.transitions
 
@@ -56,8 +61,7 @@ class EpisodeSampling:
             raise ValueError(f"n_episodes must be >= 1, got {n_episodes}")
         rng = self._rng if rng is None else rng
         tree, c = self._tree, self.capacity
-        values = (rng.random(n_episodes) + np.arange(n_episodes)) * (tree.total() / n_episodes)
-        records = self._episode[tree.sample(values)]
+        records = self._episode[tree.sample_stratified(n_episodes, rng)]
         steps = self._ep_slots[records].astype(np.int64) - 1  # transitions; the last slot is the final frame
         longest = int(steps.max())
         t = np.arange(longest + 1)
@@ -66,7 +70,7 @@ class EpisodeSampling:
         slots = (self._ep_start[records][:, None] + offsets) % c  # (B, T+1)
         mask = t[None, :longest] < steps[:, None]
         step_slots = slots[:, :longest]
-        priority = np.where(mask, tree.tree[tree.n_leaves + step_slots], 0.0)
+        priority = np.where(mask, tree.get(step_slots), 0.0)
         # Episode i's draw probability is mass_i / total; uniform transitions would give steps_i / N.
         ratio = steps / priority.sum(axis=1)
         weights = np.power(ratio / ratio.max(), beta)

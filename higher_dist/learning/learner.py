@@ -28,7 +28,6 @@ class Learner:
                                         gamma=cfg.dqn.gamma, spec=self.spec, seed=seeds.learner_replay)
         self.dqn = DQNUpdater(cfg.network, cfg.dqn, device=device or cfg.device, spec=self.spec,
                               seed=seeds.learner_init)
-        self.recurrent = cfg.network.core == "gru"  # trained on whole episodes (learning/recurrent.py)
         self.limiter = SamplesPerInsertLimiter(cfg.replay.samples_per_insert, cfg.replay.min_size)
         self.frames = 0  # env frames the actors reported (original episodes only)
         self.episodes = 0
@@ -42,6 +41,10 @@ class Learner:
         # priorities are written and before newer episodes arrive.
         self._prefetcher = ThreadPoolExecutor(1, thread_name_prefix="prefetch") if cfg.dqn.prefetch else None
         self._next_batch: Future | None = None
+
+    @property
+    def recurrent(self) -> bool:
+        return self.cfg.network.recurrent
 
     @property
     def updates(self) -> int:
@@ -72,7 +75,6 @@ class Learner:
 
     def update(self) -> dict[str, float]:
         """One prioritized DQN update; priorities come back from the loss as data."""
-        batch_size = self.cfg.dqn.batch_size
         if self._prefetcher is None:
             batch = self._sample()
         else:
@@ -82,13 +84,8 @@ class Learner:
             self.dqn.set_learning_rate(learning_rate_at(self.cfg.dqn, self.frames))
         priorities, metrics = self.dqn.update(batch)
         self._settle()
-        if self.recurrent:  # whole episodes: priorities of the real steps, samples counted as steps trained
-            valid = batch.valid
-            self.replay.update_priorities(batch.indices[valid], priorities[valid], batch.generations[valid])
-            self.limiter.record_sample(batch.transitions)
-        else:
-            self.replay.update_priorities(batch.indices, priorities, batch.generations)
-            self.limiter.record_sample(batch_size)
+        self.replay.update_priorities(*batch.priority_update(priorities))
+        self.limiter.record_sample(len(batch))  # transitions trained: whole episodes give a varying count
         self.last_metrics = metrics
         return metrics
 

@@ -62,7 +62,7 @@ class RecurrentQNetwork(QNetwork):
 
 def q_network(cfg: NetworkConfig, spec: WorldSpec = DEFAULT_SPEC) -> QNetwork:
     """The Q-network `cfg.core` names: the frame-stack network or the recurrent one."""
-    return RecurrentQNetwork(cfg, spec) if cfg.core == "gru" else QNetwork(cfg, spec)
+    return RecurrentQNetwork(cfg, spec) if cfg.recurrent else QNetwork(cfg, spec)
 
 
 def sequence_dqn_terms(

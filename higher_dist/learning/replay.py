@@ -58,6 +58,10 @@ class TransitionBatch:
     def __len__(self) -> int:
         return int(self.indices.shape[0])
 
+    def priority_update(self, priorities: np.ndarray) -> tuple:
+        """(slots, priorities, generations) for `update_priorities`: every transition of the batch."""
+        return self.indices, priorities, self.generations
+
 
 class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, for the recurrent core
     def __init__(self, cfg: ReplayConfig, frame_stack: int, n_step: int, gamma: float,
@@ -237,12 +241,7 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
             raise ValueError("the replay holds no transitions to sample")
         rng = self._rng if rng is None else rng
         tree, c, k = self._tree, self.capacity, self.frame_stack
-        # Stratified: one value per equal slice of the total mass, which spreads a batch over the
-        # buffer while each draw keeps probability p_i / total overall.
-        values = rng.random(batch_size)
-        values += np.arange(batch_size)
-        values *= tree.total() / batch_size
-        slots = tree.sample(values)
+        slots = tree.sample_stratified(batch_size, rng)
         # w_i = (N P_i)^-beta / max_j (N P_j)^-beta = (P_min / P_i)^beta: N and the total cancel.
         priority = tree.tree[tree.n_leaves + slots]
         weights = np.power(priority.min() / priority, beta)

@@ -122,6 +122,14 @@ class SumTree:
 
     # ----------------------------------------------------------------------------------- sample
 
+    def sample_stratified(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """n leaf indices, one value drawn in each of n equal slices of the total mass: a batch spreads
+        over the buffer while each draw keeps probability p_i / total overall."""
+        values = rng.random(n)
+        values += np.arange(n)
+        values *= self.total() / n
+        return self.sample(values)
+
     def sample(self, values: np.ndarray) -> np.ndarray:
         """Leaf indices whose prefix-sum interval contains each value (values in [0, total)).
 
