@@ -128,7 +128,7 @@ class ReplayConfig:
 class ExplorationConfig:
     kind: str = "apex"  # apex: a fixed epsilon per env slot | linear: one decaying epsilon
     eps_base: float = 0.4  # Ape-X: eps_i = eps_base ** (1 + apex_alpha * i / (N - 1))
-    apex_alpha: float = 2.0  # Ape-X: spread of the epsilon ladder
+    apex_alpha: float = 7.0  # Ape-X: spread of the epsilon ladder (7: rungs from 0.4 down to 0.4^8, mean 0.06)
     eps_start: float = 1.0  # linear: epsilon at frame 0
     eps_end: float = 0.05  # linear: epsilon after decay_frames
     decay_frames: int = 1_000_000  # linear: env frames of the decay

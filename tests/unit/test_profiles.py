@@ -81,3 +81,16 @@ def test_every_method_explores_and_learns_alike_on_a_world(world):
     for part in ("exploration", "dqn", "replay"):
         values = {p: getattr(c, part) for p, c in configs.items()}
         assert len(set(values.values())) == 1, f"{world}: {part} differs between presets: {values}"
+
+
+@pytest.mark.parametrize("world, spread", [("paper", 7.0), ("small", 2.0), ("BabyAI-PickupDist-v0", 2.0),
+                                           ("BabyAI-PickupLoc-v0", 2.0)])
+def test_the_ladders_spread_is_the_worlds_and_a_flag_still_sets_it(world, spread):
+    """The wide Ape-X ladder is measured on the paper world only; elsewhere the spread stays 2, and
+    `--set exploration.apex_alpha` overrides either (the world's choice comes before the flags)."""
+    for preset in ("dqn", "her", "higher"):
+        cfg = make_config(preset, world)
+        assert cfg.exploration.kind == "apex" and cfg.exploration.apex_alpha == spread
+        assert make_config(preset, world, **{"exploration.apex_alpha": 4.5}).exploration.apex_alpha == 4.5
+    # the paper profile's linear epsilon is untouched by the world's ladder
+    assert make_config("her", world, "paper").exploration.kind == "linear"
