@@ -243,7 +243,7 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
         tree, c, k = self._tree, self.capacity, self.frame_stack
         slots = tree.sample_stratified(batch_size, rng)
         # w_i = (N P_i)^-beta / max_j (N P_j)^-beta = (P_min / P_i)^beta: N and the total cancel.
-        priority = tree.tree[tree.n_leaves + slots]
+        priority = tree.get(slots)
         weights = np.power(priority.min() / priority, beta)
 
         # Frame stacks for the states and the next states in one gather: each reaches back k-1
