@@ -259,3 +259,46 @@ def test_generator_accuracy_is_unknown_before_its_first_evaluation_and_dated_aft
     strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
     m = strategy.metrics()
     assert m["generator_val_accuracy"] is not None and m["generator_val_at_pairs"] == size_then < m["relabel_dataset_size"]
+
+
+def test_learned_holds_the_newest_wrong_picks_while_gated_and_relabels_them_once_open(tmp_path, monkeypatch):
+    hold = 30
+    strategy = LearnedRelabel(replace(GEN, hold_while_gated=hold), seed=0)
+    early = wrong_picks(25, "train", seed=11) + wrong_picks(15, "train", seed=12)
+    assert strategy.relabel(early[:25]) == [] and strategy.relabel(early[25:]) == []
+    m = strategy.metrics()
+    assert m["relabel_held"] == hold and m["relabel_gated_off"] == len(early) - hold  # the oldest 10 evicted
+    # The hold survives a checkpoint on disk (a resume before the gate opens loses none of it).
+    run_dir = RunDir(tmp_path / "run")
+    run_dir.save_checkpoint("relabeler", strategy.state_dict())
+    strategy = LearnedRelabel(replace(GEN, hold_while_gated=hold), seed=0)
+    strategy.load_state_dict(run_dir.load_checkpoint("relabeler"))
+    assert strategy.metrics()["relabel_held"] == hold
+    rng = np.random.default_rng(0)
+    views, missions, goals = make_pairs(FEW_OBJECTS, 400, "train", rng)
+    strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
+    for _ in range(5):
+        strategy.train(100)
+    assert strategy.trainer.gate_open
+    batch, wrong = mixed_batch(seed=5)
+    monkeypatch.setattr("higher_dist.learning.hindsight.relabel.RELEASE_PER_BATCH", 20)
+    first = strategy.relabel(batch)  # 20 held ones beside the batch's own
+    assert strategy.metrics()["relabel_held"] == hold - 20
+    second = strategy.relabel([])  # the last 10, with no batch of its own
+    assert strategy.metrics()["relabel_held"] == 0 and strategy.relabel([]) == []
+    m = strategy.metrics()
+    made = len(first) + len(second)
+    dropped = m["relabel_unparseable"] + m["relabel_contradicting"]
+    assert made + dropped == hold + len(wrong) and made == m["relabels_made"]
+    held_frames = {ep.frames.tobytes() for ep in early[-hold:]}
+    evicted_frames = {ep.frames.tobytes() for ep in early[:len(early) - hold]} - held_frames
+    copied = {c.frames.tobytes() for c in first + second}
+    assert copied & held_frames and not copied & evicted_frames
+    check_copies(first + second, early[-hold:] + wrong)
+
+
+def test_learned_without_a_hold_drops_wrong_picks_while_gated():
+    strategy = LearnedRelabel(GEN, seed=0)
+    strategy.relabel(wrong_picks(12, "train", seed=3))
+    m = strategy.metrics()
+    assert m["relabel_held"] == 0 and m["relabel_gated_off"] == 12
