@@ -153,7 +153,6 @@ class GeneratorConfig:
     min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
     updates_per_kframe: float = 10.0  # generator updates per 1000 env frames of original episodes
     eval_every_updates: int = 200  # validation exact match (the gate's input) every this many updates
-    hold_while_gated: int = 0  # wrong picks kept (newest) while the gate is shut, relabelled once it opens; 0: dropped
 
 
 @dataclass(frozen=True)
@@ -351,7 +350,6 @@ def validate(cfg: Config) -> None:
     _check(g.max_len >= 6, f"generator.max_len: must be >= 6 to hold an instruction, got {g.max_len}")
     _check(g.capacity >= 10, f"generator.capacity: must be >= 10, got {g.capacity}")
     _check(g.updates_per_kframe >= 0, f"generator.updates_per_kframe: must be >= 0, got {g.updates_per_kframe}")
-    _check(g.hold_while_gated >= 0, f"generator.hold_while_gated: must be >= 0, got {g.hold_while_gated}")
     _check(g.eval_every_updates >= 1, f"generator.eval_every_updates: must be >= 1, got {g.eval_every_updates}")
     rl = cfg.relabel
     _check(0 <= rl.noise_p <= 1, f"relabel.noise_p: must be in [0, 1], got {rl.noise_p}")

@@ -21,7 +21,6 @@ relabels are made and is never fed back into training. `relabel_accuracy` is ove
 """
 from __future__ import annotations
 
-import dataclasses
 import itertools
 from collections import deque
 from typing import Any
@@ -39,7 +38,6 @@ from higher_dist.world.objects import ObjectSpace
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
 RECENT_RELABELS = 1000  # window of the reported relabel accuracy
-RELEASE_PER_BATCH = 256  # held wrong picks relabelled beside one batch once the gate opens
 
 
 def relabel_candidates(episodes: list[Episode]) -> list[Episode]:
@@ -204,12 +202,9 @@ class LearnedRelabel(RelabelStrategy):
 
     It reads `ep.frames` and the outcomes' steps only: never what was achieved or `ep.goal` (except
     `_score`, after the fact).
-    While the gate is closed nothing is relabelled: the wrong picks are dropped (`gated_off`), or with
-    `generator.hold_while_gated` the newest that many are held and relabelled once the gate opens, at most
-    `RELEASE_PER_BATCH` beside each batch (a bound on one message), so the agent learns from the picks
-    it made while the generator was still learning. An output that does not parse to an object of the
-    language is dropped and counted as `unparseable`, one that names the episode's own (failed) goal is
-    dropped and counted as `contradicting`.
+    While the gate is closed nothing is relabelled; an output that does not parse to an object of
+    the language is dropped and counted as `unparseable`, one that names the episode's own (failed)
+    goal is dropped and counted as `contradicting`.
     """
 
     name = "learned"
@@ -220,8 +215,7 @@ class LearnedRelabel(RelabelStrategy):
         self.cfg = cfg
         self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
-        self.gated_off = 0  # wrong picks not relabelled because the gate was closed (and not held)
-        self.held: deque[Episode] = deque(maxlen=cfg.hold_while_gated or None)
+        self.gated_off = 0  # wrong picks not relabelled because the gate was closed
         self._steps_since_eval = 0
 
     def observe(self, episodes: list[Episode]) -> None:
@@ -230,12 +224,10 @@ class LearnedRelabel(RelabelStrategy):
     def relabel(self, episodes: list[Episode]) -> list[Episode]:
         candidates = relabel_candidates(episodes)
         self.considered += len(candidates)
-        if not self.trainer.gate_open:
-            self._hold(candidates)
-            return []
-        release = min(len(self.held), RELEASE_PER_BATCH)
-        candidates = [self.held.popleft() for _ in range(release)] + candidates
         if not candidates:
+            return []
+        if not self.trainer.gate_open:
+            self.gated_off += len(candidates)
             return []
         candidates = self._outcomes(candidates)
         # One reckoning per episode for all of its chosen outcomes (they are consecutive, in step order).
@@ -250,15 +242,6 @@ class LearnedRelabel(RelabelStrategy):
         copies = self._copies([candidates[i] for i in kept], tokens[kept])
         self._score([candidates[i] for i in kept], attrs[kept])
         return copies
-
-    def _hold(self, candidates: list[Episode]) -> None:
-        """Keep the newest `hold_while_gated` wrong picks for when the gate opens; count the rest as gated off."""
-        if self.cfg.hold_while_gated <= 0:
-            self.gated_off += len(candidates)
-            return
-        evicted = max(0, len(self.held) + len(candidates) - self.cfg.hold_while_gated)
-        self.gated_off += evicted
-        self.held.extend(candidates)
 
     def train(self, budget_steps: int | None = None) -> dict[str, float]:
         """Take `budget_steps` gradient steps (the pace in learning/agent.GeneratorPace decides how many);
@@ -282,7 +265,7 @@ class LearnedRelabel(RelabelStrategy):
         out = super().metrics()
         t = self.trainer
         out.update({
-            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_GATED_OFF: self.gated_off, m.RELABEL_HELD: len(self.held),
+            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_GATED_OFF: self.gated_off,
             m.RELABEL_GATE_OPEN: t.gate_open,
             m.RELABEL_DATASET_SIZE: len(t.dataset),
             # As of the latest evaluation (None before the first), and the dataset size it was measured at.
@@ -296,8 +279,7 @@ class LearnedRelabel(RelabelStrategy):
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
         state.update({"trainer": self.trainer.state_dict(), "unparseable": self.unparseable,
-                      "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval,
-                      "held": [dataclasses.asdict(ep) for ep in self.held]})
+                      "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval})
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -305,8 +287,6 @@ class LearnedRelabel(RelabelStrategy):
         self.trainer.load_state_dict(state["trainer"])
         self.unparseable, self.gated_off = int(state["unparseable"]), int(state["gated_off"])
         self._steps_since_eval = int(state["steps_since_eval"])
-        self.held.clear()
-        self.held.extend(Episode(**fields) for fields in state.get("held", []))
 
 
 def make_relabel_strategy(cfg: Config, seed: int | RelabelerSeeds, space: ObjectSpace | None = None) -> RelabelStrategy:
