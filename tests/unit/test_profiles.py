@@ -83,10 +83,10 @@ def test_every_method_explores_and_learns_alike_on_a_world(world):
         assert len(set(values.values())) == 1, f"{world}: {part} differs between presets: {values}"
 
 
-@pytest.mark.parametrize("world, spread", [("paper", 7.0), ("small", 2.0), ("BabyAI-PickupDist-v0", 2.0),
-                                           ("BabyAI-PickupLoc-v0", 2.0)])
+@pytest.mark.parametrize("world, spread", [("paper", 7.0), ("small", 2.0), ("BabyAI-PickupDist-v0", 7.0),
+                                           ("BabyAI-PickupLoc-v0", 7.0), ("BabyAI-GoToLocal-v0", 7.0)])
 def test_the_ladders_spread_is_the_worlds_and_a_flag_still_sets_it(world, spread):
-    """The wide Ape-X ladder is measured on the paper world only; elsewhere the spread stays 2, and
+    """The wide Ape-X ladder on the paper world and BabyAI levels, a spread of 2 on the small world, and
     `--set exploration.apex_alpha` overrides either (the world's choice comes before the flags)."""
     for preset in ("dqn", "her", "higher"):
         cfg = make_config(preset, world)
