@@ -94,3 +94,15 @@ def test_the_ladders_spread_is_the_worlds_and_a_flag_still_sets_it(world, spread
         assert make_config(preset, world, **{"exploration.apex_alpha": 4.5}).exploration.apex_alpha == 4.5
     # the paper profile's linear epsilon is untouched by the world's ladder
     assert make_config("her", world, "paper").exploration.kind == "linear"
+
+
+@pytest.mark.parametrize("world, n_step", [("paper", 5), ("small", 3), ("BabyAI-PickupDist-v0", 3),
+                                           ("BabyAI-GoToLocal-v0", 3)])
+def test_returns_span_five_steps_on_the_paper_world_only_and_a_flag_still_sets_them(world, n_step):
+    """5-step returns for every method on the paper world, dqn.n_step's 3 elsewhere; `--set dqn.n_step`
+    overrides the world's choice, and the paper profile keeps it (it changes exploration and generator)."""
+    presets = ("dqn", "her", "higher") + (() if world.startswith("BabyAI") else ("reward",))
+    for preset in presets:
+        assert make_config(preset, world).dqn.n_step == n_step
+        assert make_config(preset, world, **{"dqn.n_step": 2}).dqn.n_step == 2
+    assert make_config("her", world, "paper").dqn.n_step == n_step
