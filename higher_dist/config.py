@@ -33,6 +33,7 @@ PROFILES = ("default", "paper")  # ours (docs/decisions.md) or the paper's (docs
 FUSIONS = ("film", "concat")
 CORES = ("stack", "gru")  # network.core
 TARGET_UPDATES = ("period", "polyak")
+DECODINGS = ("greedy", "sample")  # generator.decoding
 RATIO_COUNTS = ("env_frames", "transitions")
 EXPLORATION_KINDS = ("apex", "linear")
 RELABEL_STRATEGIES = ("none", "expert", "noisy", "learned")
@@ -41,7 +42,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "preset": PRESETS, "profile": PROFILES, "network.fusion": FUSIONS, "network.core": CORES,
     "dqn.target_update": TARGET_UPDATES,
     "replay.ratio_counts": RATIO_COUNTS, "exploration.kind": EXPLORATION_KINDS,
-    "relabel.strategy": RELABEL_STRATEGIES,
+    "relabel.strategy": RELABEL_STRATEGIES, "generator.decoding": DECODINGS,
 }
 
 
@@ -151,6 +152,8 @@ class GeneratorConfig:
     n_min: int = 1000  # gate: pairs needed before relabelling (paper: 1000)
     front_cell_shortcut: bool = True  # feed the front cell's channel embeddings, side by side, straight to the decoder
     min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
+    decoding: str = "greedy"  # a relabel's words: greedy (the likeliest) | sample (drawn, as the expert draws a phrasing)
+    temperature: float = 1.0  # decoding=sample: words drawn from softmax(logits / temperature)
     updates_per_kframe: float = 10.0  # generator updates per 1000 env frames of original episodes
     eval_every_updates: int = 200  # validation exact match (the gate's input) every this many updates
 
@@ -347,6 +350,7 @@ def validate(cfg: Config) -> None:
     g = cfg.generator
     _check(0 < g.val_fraction < 1, f"generator.val_fraction: must be in (0, 1), got {g.val_fraction}")
     _check(0 <= g.min_accuracy <= 1, f"generator.min_accuracy: must be in [0, 1], got {g.min_accuracy}")
+    _check(g.temperature > 0, f"generator.temperature: must be > 0, got {g.temperature}")
     _check(g.max_len >= 6, f"generator.max_len: must be >= 6 to hold an instruction, got {g.max_len}")
     _check(g.capacity >= 10, f"generator.capacity: must be >= 10, got {g.capacity}")
     _check(g.updates_per_kframe >= 0, f"generator.updates_per_kframe: must be >= 0, got {g.updates_per_kframe}")

@@ -198,12 +198,13 @@ class DQNUpdater:
             out[name] = staging.to(self.device, non_blocking=True).to(dtype)
         return out
 
-    def update(self, batch: Any) -> tuple[np.ndarray, dict[str, float]]:
+    def update(self, batch: Any, views_checked: bool = False) -> tuple[np.ndarray, dict[str, float]]:
         """One gradient step on `batch` (see `TransitionBatchLike`, or a SequenceBatch for the recurrent core);
-        returns (new priorities, (B,) or (B, T), metrics)."""
+        returns (new priorities, (B,) or (B, T), metrics). `views_checked`: every view cell of the batch is
+        known to be in range (the replay checks frames as they come in), so the compiled loss skips the check."""
         tensors = self._tensors(batch)
         self.online.train()
-        loss, priorities, q_mean, y_mean = self._loss_terms(tensors)
+        loss, priorities, q_mean, y_mean = self._loss_terms(tensors, views_checked)
         metrics = _metrics(loss, priorities, q_mean, y_mean)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -226,7 +227,7 @@ class DQNUpdater:
         metrics[m.LOSS_COMPILED] = float(self._ran_compiled)
         return priorities.cpu().numpy().astype(np.float32, copy=False), metrics
 
-    def _loss_terms(self, tensors: dict[str, torch.Tensor]):
+    def _loss_terms(self, tensors: dict[str, torch.Tensor], views_checked: bool = False):
         """dqn_terms, compiled once the background compile is ready (started by the first batch, whose
         shapes it specialises to), eager until then, for other shapes, or when it failed."""
         if self.recurrent:
@@ -240,9 +241,9 @@ class DQNUpdater:
         if not self._ran_compiled:
             return dqn_terms(self.online, self.target, huber_delta=self.cfg.huber_delta, double=self.cfg.double,
                              joint_online=self.cfg.joint_online, **tensors)
-        # The compiled graph has no room for a data-dependent raise: check the views here.
-        self.online.view.check_views(tensors["obs"])
-        self.online.view.check_views(tensors["next_obs"])
+        if not views_checked:  # the compiled graph has no room for a data-dependent raise: check here
+            self.online.view.check_views(tensors["obs"])
+            self.online.view.check_views(tensors["next_obs"])
         return c(tensors)
 
     def _update_target(self) -> None:

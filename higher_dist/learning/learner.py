@@ -82,7 +82,7 @@ class Learner:
             self._next_batch = self._prefetcher.submit(self._sample)
         if self.cfg.dqn.lr_decay_frames > 0:
             self.dqn.set_learning_rate(learning_rate_at(self.cfg.dqn, self.frames))
-        priorities, metrics = self.dqn.update(batch)
+        priorities, metrics = self.dqn.update(batch, views_checked=True)  # the replay checked them on insert
         self._settle()
         self.replay.update_priorities(*batch.priority_update(priorities))
         self.limiter.record_sample(len(batch))  # transitions trained: whole episodes give a varying count

@@ -231,17 +231,29 @@ class InstructionEncoder(nn.Module):
     def unrolled(self, words: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
         """The same GRU as `self.gru` (same weights, same gate equations, r/z/n order) as a loop of
         plain tensor ops over the L steps; each row's state stops changing after its last word, so the
-        final state is the one `forward` gathers. Input projections for all steps are one matmul."""
+        final state is the one `forward` gathers. Input projections for all steps are one matmul.
+
+        The biases are added inside the gate expressions rather than by the matrix products, and the
+        first step skips the hidden product (the state starts at zero): a product with a bias is an
+        extern call plus a copy of the broadcast bias, while a sum inside the gates fuses into the
+        compiled step's one loop."""
         g = self.gru
-        gi = F.linear(words, g.weight_ih_l0, g.bias_ih_l0)  # (B, L, 3H)
+        gi = torch.matmul(words, g.weight_ih_l0.t())  # (B, L, 3H), no bias
+        b_ir, b_iz, b_in = g.bias_ih_l0.chunk(3)
+        b_hr, b_hz, b_hn = g.bias_hh_l0.chunk(3)
+        b_r, b_z = b_ir + b_hr, b_iz + b_hz
         h = words.new_zeros(words.shape[0], self.hidden)
         for t in range(words.shape[1]):
-            gh = F.linear(h, g.weight_hh_l0, g.bias_hh_l0)
             i_r, i_z, i_n = gi[:, t].chunk(3, dim=1)
-            h_r, h_z, h_n = gh.chunk(3, dim=1)
-            r = torch.sigmoid(i_r + h_r)
-            z = torch.sigmoid(i_z + h_z)
-            n = torch.tanh(i_n + r * h_n)
+            if t == 0:
+                r = torch.sigmoid(i_r + b_r)
+                z = torch.sigmoid(i_z + b_z)
+                n = torch.tanh(i_n + b_in + r * b_hn)
+            else:
+                h_r, h_z, h_n = torch.mm(h, g.weight_hh_l0.t()).chunk(3, dim=1)
+                r = torch.sigmoid(i_r + h_r + b_r)
+                z = torch.sigmoid(i_z + h_z + b_z)
+                n = torch.tanh(i_n + b_in + r * (h_n + b_hn))
             step = n + z * (h - n)
             h = torch.where((t < lengths).unsqueeze(1), step, h)
         return h

@@ -111,6 +111,7 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
         self._counts = np.zeros(len(ORIGINS), dtype=np.int64)
         self._stack_back = np.arange(self.frame_stack - 1, -1, -1, dtype=np.int64)  # k-1 .. 0
         self._gamma_pow = self.gamma ** np.arange(self.n_step + 1, dtype=np.float64)
+        self._channel_max = np.asarray(spec.channel_max, dtype=np.int64)
 
     # ----------------------------------------------------------------------------------- insert
 
@@ -142,6 +143,7 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
                              f"replay capacity {self.capacity}")
         if ep.frames.shape != (n_slots, v, v, 4):
             raise ValueError(f"episode frames have shape {ep.frames.shape}, expected {(n_slots, v, v, 4)}")
+        self._check_cells(ep.frames, "episode frames")
         if ep.rewards.shape != (steps,):
             raise ValueError(f"episode rewards have shape {ep.rewards.shape}, expected ({steps},)")
         mission = np.asarray(ep.mission)
@@ -153,6 +155,18 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
         actions = np.zeros(n_slots, dtype=np.uint8)
         actions[:steps] = ep.actions
         return steps, ep.frames, actions, returns, discounts, offsets, mission, ORIGINS.index(ep.origin)
+
+    def _check_cells(self, frames: np.ndarray, what: str) -> None:
+        """ValueError unless every cell of `frames` (..., 4) holds values its channel has. Checked here,
+        once per frame as it comes in, so every batch the replay samples is known good: the learner's
+        compiled loss has no room for the check, and would otherwise make it on every sample."""
+        frames = np.asarray(frames)
+        if frames.dtype.kind not in "ui":
+            raise ValueError(f"{what}: expected integer cell values, got {frames.dtype}")
+        cells = frames.reshape(-1, frames.shape[-1])
+        if cells.shape[0] and ((cells.max(axis=0) > self._channel_max).any()
+                               or (frames.dtype.kind == "i" and cells.min() < 0)):
+            raise ValueError(f"{what}: channel values out of range [0, {list(self.spec.channel_max)}]")
 
     def _write(self, prepared: tuple, undo: _InsertUndo) -> None:
         steps, frames, actions, returns, discounts, offsets, mission, origin = prepared
@@ -335,12 +349,15 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
                 raise ValueError(f"replay state has {key}={state[key]}, this replay has {getattr(self, key)}")
         if float(state["gamma"]) != self.gamma:  # stored returns were computed with it
             raise ValueError(f"replay state has gamma={state['gamma']}, this replay has {self.gamma}")
+        values = {}
         for name in self._ARRAYS:
-            target = getattr(self, name)
-            value = np.asarray(state[name.lstrip("_")])
-            if value.shape != target.shape:
-                raise ValueError(f"replay state {name.lstrip('_')} has shape {value.shape}, expected {target.shape}")
-            target[...] = value
+            value = values[name] = np.asarray(state[name.lstrip("_")])
+            if value.shape != getattr(self, name).shape:
+                raise ValueError(f"replay state {name.lstrip('_')} has shape {value.shape}, "
+                                 f"expected {getattr(self, name).shape}")
+        self._check_cells(values["_frames"], "replay state frames")  # every array checked before any is written
+        for name, value in values.items():
+            getattr(self, name)[...] = value
         for name in self._INTS:
             setattr(self, name, int(state[name.lstrip("_")]))
         self._tree.load_state_dict({"capacity": self.capacity, "tree": state["tree"],

@@ -217,3 +217,21 @@ def test_the_front_cell_shortcut_gives_each_channel_its_own_embedding_row():
     assert torch.allclose(cell, table[rows].flatten(1))
     changed = (cell[0] != cell[1]).reshape(4, 4).any(dim=1)
     assert changed.tolist() == [False, False, True, False]
+
+
+def test_sampled_relabels_vary_their_phrasing_and_keep_their_meaning():
+    """generator.decoding=sample: relabels of one view are phrased as variously as the expert's missions
+    (greedy decoding says them all one way), and still name the object in view."""
+    rng = np.random.default_rng(0)
+    views, missions, attrs = make_pairs(FEW_OBJECTS, 400, "train", rng)
+    trainer = GeneratorTrainer(SMALL, seed=0)
+    trainer.dataset.add_many(views, missions)
+    trainer.train_steps(500)
+    same_view = np.repeat(views[:1], 64, axis=0)
+    greedy = trainer.generate(same_view)
+    sampled = trainer.generate(same_view, seed=7)
+    assert np.array_equal(sampled, trainer.generate(same_view, seed=7))  # the seed decides the draws
+    assert len({row.tobytes() for row in greedy}) == 1
+    assert len({row.tobytes() for row in sampled}) >= 4
+    truth = np.repeat(attrs[:1], 64, axis=0)
+    assert semantic_accuracy(sampled, truth, trainer.language)["exact"] >= 0.8

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from higher_dist.config import NetworkConfig
-from higher_dist.learning.networks import QNetwork, ViewEncoder, load_weights_numpy, lookup, weights_numpy
+from higher_dist.learning.networks import InstructionEncoder, QNetwork, ViewEncoder, load_weights_numpy, lookup, weights_numpy
 from higher_dist.world.spec import DEFAULT_SPEC, VIEW_CHANNEL_VALUES
 
 torch.set_num_threads(1)
@@ -125,6 +125,30 @@ def test_lookup_gradient_matches_autograd_embedding() -> None:
     table.grad = None
     (F.embedding(index, table) * upstream).sum().backward()
     assert torch.allclose(ours, table.grad, atol=1e-6)
+
+
+def test_unrolled_gru_matches_torch_gru_in_values_and_gradients() -> None:
+    """The compiled loss runs the instruction GRU as `unrolled` (biases inside the gates, no hidden
+    product at the first step); it must be torch's GRU, read at each mission's last word."""
+    torch.manual_seed(3)
+    enc = InstructionEncoder(VOCAB, word_embed_dim=8, hidden=6)
+    with torch.no_grad():  # non-zero biases, so folding them into the gates is exercised
+        enc.gru.bias_ih_l0.normal_()
+        enc.gru.bias_hh_l0.normal_()
+    missions = torch.from_numpy(random_missions(np.random.default_rng(4), 9))
+    missions[0, 1:] = 0  # a one-word mission: only the first step counts
+    lengths = (missions != 0).sum(dim=1)
+    words = F.embedding(missions, enc.embed.weight)
+    upstream = torch.randn(9, 6)
+
+    def grads(out: torch.Tensor) -> list[torch.Tensor]:
+        return list(torch.autograd.grad((out * upstream).sum(), list(enc.gru.parameters())))
+
+    ours = enc.unrolled(words, lengths)
+    theirs = enc(missions)  # eager: torch's GRU, gathered at length - 1
+    assert torch.allclose(ours, theirs, atol=1e-5)
+    for a, b in zip(grads(enc.unrolled(words, lengths)), grads(enc(missions))):
+        assert torch.allclose(a, b, atol=1e-5)
 
 
 def test_encoder_output_sizes_and_deep_stacks() -> None:

@@ -127,7 +127,7 @@ def front_describer(spec: WorldSpec, seen: list[np.ndarray]):
     told where that object lay seen from the start, the first location that says so, as an exact generator
     would; it records what it was shown."""
 
-    def generate(views, where=None):
+    def generate(views, where=None, seed=None):
         seen.append(np.array(views))
         attrs = spec.front_object(views)
         attrs[:, 2], attrs[:, 3] = -1, 0

@@ -1,4 +1,5 @@
 import io
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -8,8 +9,12 @@ from hypothesis import strategies as st
 from higher_dist.config import ReplayConfig
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
 from higher_dist.learning.replay import PrioritizedReplay
+from higher_dist.world.spec import DEFAULT_SPEC
 
 GAMMA, N_STEP = 0.9, 3
+# Frames here carry identities (episode id, step) in their cells, beyond the paper world's values: a
+# world whose every channel takes any byte lets them in.
+MARKER_SPEC = replace(DEFAULT_SPEC, channel_values=(256, 256, 256, 256))
 
 
 def make_episode(ep_id: int, steps: int, outcome: int = SUCCESS, rewards=None, relabelled=False) -> Episode:
@@ -30,7 +35,7 @@ def make_episode(ep_id: int, steps: int, outcome: int = SUCCESS, rewards=None, r
 
 def make_replay(capacity=64, frame_stack=4, n_step=N_STEP, gamma=GAMMA, seed=0, **cfg) -> PrioritizedReplay:
     return PrioritizedReplay(ReplayConfig(capacity=capacity, **cfg), frame_stack=frame_stack,
-                             n_step=n_step, gamma=gamma, seed=seed)
+                             n_step=n_step, gamma=gamma, spec=MARKER_SPEC, seed=seed)
 
 
 def reference_targets(rewards, terminated, n=N_STEP, gamma=GAMMA):
@@ -178,6 +183,34 @@ def test_invalid_episodes_are_refused():
         replay.add_episode(Episode(**{**ep.__dict__, "mission": np.full(10, 40_000)}))
     with pytest.raises(ValueError):
         make_replay().sample(4, beta=0.4)  # empty
+
+
+def test_cells_outside_the_worlds_values_are_refused_at_insert_and_on_load():
+    """The replay checks every frame's cells as it comes in (the learner's compiled loss then need not):
+    a value a channel lacks, in any cell of any frame, refuses the batch and stores none of it; a
+    checkpoint whose frames hold one is refused before anything is loaded."""
+    world = PrioritizedReplay(ReplayConfig(capacity=64), frame_stack=4, n_step=N_STEP, gamma=GAMMA, seed=0)
+    good = make_episode(1, 4)
+    good.frames[:, 0, 0, :2] = 0  # the markers, beyond this world's values
+    world.add_episode(good)
+    for channel, value in enumerate(DEFAULT_SPEC.channel_max):
+        bad = make_episode(2, 5)
+        bad.frames[:, 0, 0, :2] = 0
+        bad.frames[3, 6, 2, channel] = value + 1
+        before = world.state_dict()
+        with pytest.raises(ValueError, match="out of range"):
+            world.add_episodes([good, bad])
+        after = world.state_dict()
+        assert all(np.array_equal(before[k], after[k]) for k in before)
+    with pytest.raises(ValueError, match="integer"):
+        world.add_episode(Episode(**{**good.__dict__, "frames": good.frames.astype(np.float32)}))
+    state = world.state_dict()
+    state["frames"] = state["frames"].copy()
+    state["frames"][10, 3, 3, 0] = DEFAULT_SPEC.channel_max[0] + 1
+    fresh = PrioritizedReplay(ReplayConfig(capacity=64), frame_stack=4, n_step=N_STEP, gamma=GAMMA, seed=0)
+    with pytest.raises(ValueError, match="out of range"):
+        fresh.load_state_dict(state)
+    assert len(fresh) == 0 and not fresh.state_dict()["frames"].any()
 
 
 def test_importance_weights_match_numpy_formula():

@@ -9,6 +9,7 @@ import pytest
 from higher_dist.config import ReplayConfig
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
 from higher_dist.learning.replay import PrioritizedReplay
+from tests.unit.test_replay import MARKER_SPEC
 
 CAPACITY = 64
 
@@ -27,7 +28,8 @@ def episode(ep_id: int, steps: int, outcome: int = SUCCESS) -> Episode:
 
 def filled_replay() -> PrioritizedReplay:
     """A replay that has wrapped around its ring, with priorities that are not all the maximum."""
-    replay = PrioritizedReplay(ReplayConfig(capacity=CAPACITY), frame_stack=4, n_step=3, gamma=0.9, seed=7)
+    replay = PrioritizedReplay(ReplayConfig(capacity=CAPACITY), frame_stack=4, n_step=3, gamma=0.9, spec=MARKER_SPEC,
+                               seed=7)
     outcomes = (SUCCESS, WRONG_PICK, TIMEOUT)
     replay.add_episodes([episode(i, 3 + i % 5, outcomes[i % 3]) for i in range(20)])
     batch = replay.sample(16, beta=0.4)

@@ -215,14 +215,16 @@ class GeneratorTrainer:
         self.last_loss = total / n
         return self.last_loss
 
-    def generate(self, views: np.ndarray, where: np.ndarray | None = None) -> np.ndarray:
-        """Greedy instructions (N, MISSION_LEN) int64 for (N, V, V, 4) views and, on a level whose missions
-        name locations, their (N,) `WorldSpec.start_locations` (None: 0, nowhere known)."""
+    def generate(self, views: np.ndarray, where: np.ndarray | None = None, seed: int | None = None) -> np.ndarray:
+        """Instructions (N, MISSION_LEN) int64 for (N, V, V, 4) views and, on a level whose missions
+        name locations, their (N,) `WorldSpec.start_locations` (None: 0, nowhere known). Greedy, or with
+        `seed` each word drawn from the generator's distribution (a torch generator seeded with it)."""
         views = np.asarray(views)
         if views.shape[0] == 0:
             return np.zeros((0, self.model.mission_len), np.int64)
         where = np.zeros(len(views), np.int64) if where is None else np.asarray(where, np.int64)
         self.model.eval()
+        draws = None if seed is None else torch.Generator(device=self.device).manual_seed(int(seed))
         chunks = []
         for i in range(0, views.shape[0], EVAL_CHUNK):
             chunk = views[i:i + EVAL_CHUNK]
@@ -232,8 +234,14 @@ class GeneratorTrainer:
             padded[: len(chunk)] = chunk
             padded_where = np.zeros(len(padded), np.int64)
             padded_where[: len(chunk)] = where[i:i + EVAL_CHUNK]
-            out = self.model.greedy(torch.as_tensor(padded, device=self.device),
-                                    where=torch.as_tensor(padded_where, device=self.device)).cpu().numpy()
+            padded_views = torch.as_tensor(padded, device=self.device)
+            padded_where = torch.as_tensor(padded_where, device=self.device)
+            if draws is None:
+                out = self.model.greedy(padded_views, where=padded_where)
+            else:
+                out = self.model.sample(padded_views, generator=draws, temperature=self.cfg.temperature,
+                                        where=padded_where)
+            out = out.cpu().numpy()
             chunks.append(out[: len(chunk)])
         return np.concatenate(chunks).astype(np.int64)
 
