@@ -97,7 +97,7 @@ class DQNConfig:
     lr_end_fraction: float = 0.1  # where the lr decay ends, as a fraction of lr
     adam_eps: float = 1e-6  # Adam's epsilon
     gamma: float = 0.95  # discount per step (a wasted step costs 5% of the value: docs/decisions.md)
-    n_step: int = 5  # steps of the n-step return (3 on BabyAI levels and the small world: docs/decisions.md)
+    n_step: int = 5  # steps of the n-step return (3 on the small world: docs/decisions.md)
     huber_delta: float = 1.0  # Huber loss threshold
     grad_clip: float = 10.0  # gradient norm clip
     target_update: str = "period"  # target network: period (hard copies) | polyak (soft)
