@@ -30,6 +30,7 @@ from higher_dist.config import ReplayConfig
 from higher_dist.learning.episode import OUTCOME_NAMES, Episode
 from higher_dist.learning.episode_sampling import EpisodeSampling, SequenceBatch
 from higher_dist.learning.exploration import linear_schedule
+from higher_dist.learning.seeds import rng_state_from_array, rng_state_to_array
 from higher_dist.learning.sum_tree import SumTree
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
@@ -111,7 +112,6 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
         self._counts = np.zeros(len(ORIGINS), dtype=np.int64)
         self._stack_back = np.arange(self.frame_stack - 1, -1, -1, dtype=np.int64)  # k-1 .. 0
         self._gamma_pow = self.gamma ** np.arange(self.n_step + 1, dtype=np.float64)
-        self._channel_max = np.asarray(spec.channel_max, dtype=np.int64)
 
     # ----------------------------------------------------------------------------------- insert
 
@@ -143,7 +143,7 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
                              f"replay capacity {self.capacity}")
         if ep.frames.shape != (n_slots, v, v, 4):
             raise ValueError(f"episode frames have shape {ep.frames.shape}, expected {(n_slots, v, v, 4)}")
-        self._check_cells(ep.frames, "episode frames")
+        self.spec.check_cells(ep.frames, "episode frames")
         if ep.rewards.shape != (steps,):
             raise ValueError(f"episode rewards have shape {ep.rewards.shape}, expected ({steps},)")
         mission = np.asarray(ep.mission)
@@ -155,18 +155,6 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
         actions = np.zeros(n_slots, dtype=np.uint8)
         actions[:steps] = ep.actions
         return steps, ep.frames, actions, returns, discounts, offsets, mission, ORIGINS.index(ep.origin)
-
-    def _check_cells(self, frames: np.ndarray, what: str) -> None:
-        """ValueError unless every cell of `frames` (..., 4) holds values its channel has. Checked here,
-        once per frame as it comes in, so every batch the replay samples is known good: the learner's
-        compiled loss has no room for the check, and would otherwise make it on every sample."""
-        frames = np.asarray(frames)
-        if frames.dtype.kind not in "ui":
-            raise ValueError(f"{what}: expected integer cell values, got {frames.dtype}")
-        cells = frames.reshape(-1, frames.shape[-1])
-        if cells.shape[0] and ((cells.max(axis=0) > self._channel_max).any()
-                               or (frames.dtype.kind == "i" and cells.min() < 0)):
-            raise ValueError(f"{what}: channel values out of range [0, {list(self.spec.channel_max)}]")
 
     def _write(self, prepared: tuple, undo: _InsertUndo) -> None:
         steps, frames, actions, returns, discounts, offsets, mission, origin = prepared
@@ -340,7 +328,7 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
         tree = self._tree.state_dict()
         state["tree"] = tree["tree"]
         state["tree_max_priority"] = tree["max_priority"]
-        state["rng_state"] = _pcg64_to_array(self._rng)
+        state["rng_state"] = rng_state_to_array(self._rng)
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -355,14 +343,14 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
             if value.shape != getattr(self, name).shape:
                 raise ValueError(f"replay state {name.lstrip('_')} has shape {value.shape}, "
                                  f"expected {getattr(self, name).shape}")
-        self._check_cells(values["_frames"], "replay state frames")  # every array checked before any is written
+        self.spec.check_cells(values["_frames"], "replay state frames")  # all checked before any is written
         for name, value in values.items():
             getattr(self, name)[...] = value
         for name in self._INTS:
             setattr(self, name, int(state[name.lstrip("_")]))
         self._tree.load_state_dict({"capacity": self.capacity, "tree": state["tree"],
                                     "max_priority": state["tree_max_priority"]})
-        _pcg64_from_array(self._rng, state["rng_state"])
+        rng_state_from_array(self._rng, state["rng_state"])
 
 
 class _InsertUndo:
@@ -393,23 +381,3 @@ class _InsertUndo:
         r._counts[...] = self.counts
         for name, value in self.ints.items():
             setattr(r, name, value)
-
-
-def _pcg64_to_array(rng: np.random.Generator) -> np.ndarray:
-    """The generator's PCG64 state as 6 uint64 words, so a checkpoint needs no pickled dict."""
-    s = rng.bit_generator.state
-    if s["bit_generator"] != "PCG64":
-        raise ValueError(f"cannot store a {s['bit_generator']} generator state")
-    mask = (1 << 64) - 1
-    state, inc = s["state"]["state"], s["state"]["inc"]
-    return np.array([state >> 64, state & mask, inc >> 64, inc & mask, s["has_uint32"], s["uinteger"]],
-                    dtype=np.uint64)
-
-
-def _pcg64_from_array(rng: np.random.Generator, words: np.ndarray) -> None:
-    w = [int(x) for x in np.asarray(words, dtype=np.uint64)]
-    rng.bit_generator.state = {
-        "bit_generator": "PCG64",
-        "state": {"state": (w[0] << 64) | w[1], "inc": (w[2] << 64) | w[3]},
-        "has_uint32": w[4], "uinteger": w[5],
-    }

@@ -117,3 +117,24 @@ class Seeds:
         """One seed per evaluation episode at `frames` learner frames: fresh goals at every evaluation,
         the same ones for every policy scored at that count."""
         return self.integers(Role.EVALUATION, int(frames), Purpose.EPISODES, episodes)
+
+
+def rng_state_to_array(rng: np.random.Generator) -> np.ndarray:
+    """The generator's PCG64 state as 6 uint64 words, so a checkpoint needs no pickled dict."""
+    s = rng.bit_generator.state
+    if s["bit_generator"] != "PCG64":
+        raise ValueError(f"cannot store a {s['bit_generator']} generator state")
+    mask = (1 << 64) - 1
+    state, inc = s["state"]["state"], s["state"]["inc"]
+    return np.array([state >> 64, state & mask, inc >> 64, inc & mask, s["has_uint32"], s["uinteger"]],
+                    dtype=np.uint64)
+
+
+def rng_state_from_array(rng: np.random.Generator, words: np.ndarray) -> None:
+    """Set the generator to the PCG64 state `rng_state_to_array` wrote."""
+    w = [int(x) for x in np.asarray(words, dtype=np.uint64)]
+    rng.bit_generator.state = {
+        "bit_generator": "PCG64",
+        "state": {"state": (w[0] << 64) | w[1], "inc": (w[2] << 64) | w[3]},
+        "has_uint32": w[4], "uinteger": w[5],
+    }

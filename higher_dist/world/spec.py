@@ -213,6 +213,17 @@ class WorldSpec:
         """Largest value of each view channel (network embedding rows, wire value limits)."""
         return tuple(n - 1 for n in self.channel_values)
 
+    def check_cells(self, frames: np.ndarray, what: str = "views") -> None:
+        """ValueError unless `frames` (..., 4) are integers each within its channel's values (an
+        out-of-range value would alias another cell's code in the network's embedding)."""
+        frames = np.asarray(frames)
+        if frames.dtype.kind not in "ui":
+            raise ValueError(f"{what}: expected integer cell values, got {frames.dtype}")
+        cells = frames.reshape(-1, frames.shape[-1])
+        if cells.shape[0] and ((cells.max(axis=0) > np.asarray(self.channel_max)).any()
+                               or (frames.dtype.kind == "i" and cells.min() < 0)):
+            raise ValueError(f"{what}: channel values out of range [0, {list(self.channel_max)}]")
+
     def attr_allowed(self) -> np.ndarray:
         """(4, max(attr_values) + 1) bool: entry [a, v + 1] is True when this world uses value v of
         attribute a; column 0 stands for -1 (none). For vectorised checks of picks and goals."""
