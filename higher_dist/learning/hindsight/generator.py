@@ -234,15 +234,13 @@ class GeneratorTrainer:
             padded[: len(chunk)] = chunk
             padded_where = np.zeros(len(padded), np.int64)
             padded_where[: len(chunk)] = where[i:i + EVAL_CHUNK]
-            padded_views = torch.as_tensor(padded, device=self.device)
-            padded_where = torch.as_tensor(padded_where, device=self.device)
+            inputs = torch.as_tensor(padded, device=self.device)
+            at = torch.as_tensor(padded_where, device=self.device)
             if draws is None:
-                out = self.model.greedy(padded_views, where=padded_where)
+                out = self.model.greedy(inputs, where=at)
             else:
-                out = self.model.sample(padded_views, generator=draws, temperature=self.cfg.temperature,
-                                        where=padded_where)
-            out = out.cpu().numpy()
-            chunks.append(out[: len(chunk)])
+                out = self.model.sample(inputs, generator=draws, temperature=self.cfg.temperature, where=at)
+            chunks.append(out.cpu().numpy()[: len(chunk)])
         return np.concatenate(chunks).astype(np.int64)
 
     def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray, where: np.ndarray | None = None) -> dict[str, float]:
