@@ -17,9 +17,10 @@ from pathlib import Path
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 RESULTS = DOCS / "results.md"
 ARCHIVES = {  # block prefix -> archive: every experiment on the earlier defaults and on the paper's profile,
-    # then `main` on today's defaults on the paper world and on BabyAI-PickupDist-v0
+    # then `main` on today's defaults on the paper world and on BabyAI-PickupDist-v0 and -PickupLoc-v0
     "": DOCS / "runs" / "claims-default", "paper-": DOCS / "runs" / "claims-paper",
-    "main-": DOCS / "runs" / "main-defaults", "pickupdist-": DOCS / "runs" / "pickupdist-defaults"}
+    "main-": DOCS / "runs" / "main-defaults", "pickupdist-": DOCS / "runs" / "pickupdist-defaults",
+    "pickuploc-": DOCS / "runs" / "pickuploc-defaults"}
 BLOCK = re.compile(r"(<!-- gen:([\w-]+) -->\n)(.*?)(<!-- /gen -->)", re.S)
 
 # A part of a report: the first line that starts with its marker, then the lines a table goes on with.
