@@ -57,11 +57,6 @@ _TYPE_IDS = {WORD_TO_ID[w]: i for i, w in enumerate(TYPES)}
 _TYPE_IDS[WORD_TO_ID["object"]] = -1
 _LOC_IDS = {tuple(WORD_TO_ID[w] for w in phrase.split()): i for i, phrase in enumerate(LOC_PHRASES)}
 _LOC_IDS[()] = -1
-# word id -> the attribute (ATTR_NAMES index) it names a value of, -1 for other words; "object" is the
-# type word of any type, and a location phrase's one telling word ("left", "front", ...) stands for it.
-WORD_KINDS: tuple[int, ...] = tuple(
-    0 if i in _COLOR_IDS else 1 if i in _TYPE_IDS else 3 if i in _ARTICLE_IDS
-    else 2 if VOCAB[i] in LOCS else -1 for i in range(len(VOCAB)))
 
 
 def _check_attrs(attrs) -> np.ndarray:
@@ -107,7 +102,7 @@ class BabyAILanguage:
     """The language of one level kind ("pickup", "goto" or "open"): its verb and the types it names."""
 
     VOCAB, MISSION_LEN, COLORS, TYPES, LOCS = VOCAB, MISSION_LEN, COLORS, TYPES, LOCS
-    ATTR_NAMES, N_VARIANTS, PAD, BEG, END, WORD_KINDS = ATTR_NAMES, N_VARIANTS, PAD, BEG, END, WORD_KINDS
+    ATTR_NAMES, N_VARIANTS, PAD, BEG, END = ATTR_NAMES, N_VARIANTS, PAD, BEG, END
     encode, decode, with_markers, satisfies = (staticmethod(encode), staticmethod(decode),
                                                staticmethod(with_markers), staticmethod(satisfies))
 

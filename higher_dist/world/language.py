@@ -34,10 +34,6 @@ assert len(WORD_TO_ID) == len(VOCAB), "a word occurs twice in the vocabulary"
 # word id -> (attribute, global value index), for the parser
 _WORD_ATTR = {WORD_TO_ID[w]: (attr, idx) for attr, table in enumerate(_ATTR_TABLES) for idx, w in enumerate(table)}
 
-# word id -> the attribute it names a value of (-1: a prefix word or a marker). The relabeler weighs the
-# generator's certainty about each value against the other values of the same attribute.
-WORD_KINDS: tuple[int, ...] = tuple(_WORD_ATTR.get(i, (-1, 0))[0] for i in range(len(VOCAB)))
-
 # The three attribute words between prefix and type come in any order; an instruction's variant
 # number picks a prefix and an order: variant = prefix_index * len(_ORDERS) + order_index.
 _ORDERS = tuple(itertools.permutations((_COLOR, _SIZE, _SHADE)))

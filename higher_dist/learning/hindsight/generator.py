@@ -77,13 +77,6 @@ class InstructionGenerator(nn.Module):
         banned = torch.zeros(vocab_size, dtype=torch.bool)
         banned[[PAD, BEG]] = True
         self.register_buffer("banned", banned, persistent=False)
-        # (vocab, kinds) one-hot of the attribute each word names a value of (the language's WORD_KINDS):
-        # sums a step's probabilities over each attribute's values, for `confidence` below.
-        kinds = torch.as_tensor(spec.language.WORD_KINDS, dtype=torch.long)
-        n_kinds = int(kinds.max()) + 1
-        self.register_buffer("kind_of_word", kinds, persistent=False)
-        self.register_buffer("word_in_kind", F.one_hot(kinds.clamp(min=0), n_kinds).float()
-                             * (kinds >= 0).float()[:, None], persistent=False)
 
     def encode(self, views: torch.Tensor, where: torch.Tensor | None = None) -> torch.Tensor:
         """(B, V, V, 4) integer views (and (B,) location masks where the level names locations; None: 0)
@@ -122,30 +115,17 @@ class InstructionGenerator(nn.Module):
                                ignore_index=PAD)
 
     @torch.no_grad()
-    def _decode(self, views: torch.Tensor, max_len: int, choose, where: torch.Tensor | None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Words (B, MISSION_LEN) and each row's confidence (B,): at every word that names an attribute's
-        value, the chosen word's probability over the summed probability of that attribute's values
-        (how sure the generator is of the value once it names the attribute: phrasing and word order
-        split the probability among attributes, not among values); the row's least such share, 1 where
-        it names none."""
+    def _decode(self, views: torch.Tensor, max_len: int, choose, where: torch.Tensor | None) -> torch.Tensor:
         b = views.shape[0]
         ctx = self.encode(views, where)
         h = torch.tanh(self.init_hidden(ctx))[None]
         token = torch.full((b, 1), BEG, dtype=torch.long, device=views.device)
         words = torch.full((b, max(max_len, self.mission_len)), PAD, dtype=torch.long, device=views.device)
         done = torch.zeros(b, dtype=torch.bool, device=views.device)
-        confidence = torch.ones(b, device=views.device)
         for t in range(max_len):
             logits, h = self._step(token, ctx, h)
             logits = logits[:, 0].masked_fill(self.banned, -math.inf)
             nxt = choose(logits)
-            probs = torch.softmax(logits, dim=1)
-            kind = self.kind_of_word[nxt]
-            of_kind = (probs @ self.word_in_kind).gather(1, kind.clamp(min=0)[:, None])[:, 0]
-            share = probs.gather(1, nxt[:, None])[:, 0] / of_kind.clamp(min=1e-12)
-            counted = (kind >= 0) & ~done
-            confidence = torch.where(counted, torch.minimum(confidence, share), confidence)
             done = done | (nxt == END)
             # A finished row keeps PAD; END itself is not part of the mission encoding.
             words[:, t] = torch.where(done, torch.full_like(nxt, PAD), nxt)
@@ -153,15 +133,10 @@ class InstructionGenerator(nn.Module):
                 break
             token = nxt[:, None]
         # An output that never ended is cut to the mission length; the parser judges it.
-        return words[:, :self.mission_len], confidence
+        return words[:, :self.mission_len]
 
     def greedy(self, views: torch.Tensor, max_len: int | None = None, where: torch.Tensor | None = None) -> torch.Tensor:
         """(B, MISSION_LEN) int64 word tokens, PAD-padded; at most `max_len` decoding steps."""
-        return self.greedy_with_confidence(views, max_len, where)[0]
-
-    def greedy_with_confidence(self, views: torch.Tensor, max_len: int | None = None,
-                               where: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """`greedy`'s words and each row's confidence (see `_decode`)."""
         return self._decode(views, self.cfg.max_len if max_len is None else max_len,
                             lambda logits: logits.argmax(dim=1), where)
 
@@ -169,14 +144,8 @@ class InstructionGenerator(nn.Module):
                generator: torch.Generator | None = None, temperature: float = 1.0,
                where: torch.Tensor | None = None) -> torch.Tensor:
         """Like `greedy` but each word is drawn from softmax(logits / temperature)."""
-        return self.sample_with_confidence(views, max_len, generator, temperature, where)[0]
-
-    def sample_with_confidence(self, views: torch.Tensor, max_len: int | None = None,
-                               generator: torch.Generator | None = None, temperature: float = 1.0,
-                               where: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """`sample`'s words and each row's confidence (the model's own probabilities, at temperature 1)."""
         if temperature <= 0:
-            return self.greedy_with_confidence(views, max_len, where)
+            return self.greedy(views, max_len, where)
 
         def choose(logits: torch.Tensor) -> torch.Tensor:
             probs = torch.softmax(logits / temperature, dim=1)
@@ -250,18 +219,13 @@ class GeneratorTrainer:
         """Instructions (N, MISSION_LEN) int64 for (N, V, V, 4) views and, on a level whose missions
         name locations, their (N,) `WorldSpec.start_locations` (None: 0, nowhere known). Greedy, or with
         `seed` each word drawn from the generator's distribution (a torch generator seeded with it)."""
-        return self.describe(views, where, seed)[0]
-
-    def describe(self, views: np.ndarray, where: np.ndarray | None = None, seed: int | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
-        """`generate`'s instructions and their (N,) float32 confidence (`InstructionGenerator._decode`)."""
         views = np.asarray(views)
         if views.shape[0] == 0:
-            return np.zeros((0, self.model.mission_len), np.int64), np.zeros(0, np.float32)
+            return np.zeros((0, self.model.mission_len), np.int64)
         where = np.zeros(len(views), np.int64) if where is None else np.asarray(where, np.int64)
         self.model.eval()
         draws = None if seed is None else torch.Generator(device=self.device).manual_seed(int(seed))
-        chunks, sureness = [], []
+        chunks = []
         for i in range(0, views.shape[0], EVAL_CHUNK):
             chunk = views[i:i + EVAL_CHUNK]
             # Pad to a few fixed batch sizes: the CPU kernels cache per input shape, and the relabeler
@@ -273,13 +237,11 @@ class GeneratorTrainer:
             inputs = torch.as_tensor(padded, device=self.device)
             at = torch.as_tensor(padded_where, device=self.device)
             if draws is None:
-                out, sure = self.model.greedy_with_confidence(inputs, where=at)
+                out = self.model.greedy(inputs, where=at)
             else:
-                out, sure = self.model.sample_with_confidence(inputs, generator=draws,
-                                                              temperature=self.cfg.temperature, where=at)
+                out = self.model.sample(inputs, generator=draws, temperature=self.cfg.temperature, where=at)
             chunks.append(out.cpu().numpy()[: len(chunk)])
-            sureness.append(sure.cpu().numpy()[: len(chunk)])
-        return np.concatenate(chunks).astype(np.int64), np.concatenate(sureness).astype(np.float32)
+        return np.concatenate(chunks).astype(np.int64)
 
     def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray, where: np.ndarray | None = None) -> dict[str, float]:
         """Semantic accuracy of the greedy outputs on given pairs: do they describe the object the pair's

@@ -215,7 +215,6 @@ class LearnedRelabel(RelabelStrategy):
         self.cfg = cfg
         self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
-        self.unsure = 0  # parseable relabels dropped under generator.min_confidence
         self.gated_off = 0  # wrong picks not relabelled because the gate was closed
         self._steps_since_eval = 0
 
@@ -238,13 +237,10 @@ class LearnedRelabel(RelabelStrategy):
         # Sampled words phrase a relabel as variously as the missions it stands beside (the expert draws
         # its phrasing too); greedy words say every relabel of one object the same way.
         seed = int(self.rng.integers(2 ** 63)) if self.cfg.decoding == "sample" else None
-        tokens, confidence = self.trainer.describe(views, np.concatenate([w for _, w in inputs]), seed=seed)
+        tokens = self.trainer.generate(views, np.concatenate([w for _, w in inputs]), seed=seed)
         attrs, ok = self.language.parse_many(tokens)
         self.unparseable += int((~ok).sum())
-        # A value the generator is unsure of is as likely wrong as right: the copy is dropped, not guessed.
-        sure = confidence >= self.cfg.min_confidence
-        self.unsure += int((ok & ~sure).sum())
-        kept = np.flatnonzero(ok & sure)
+        kept = np.flatnonzero(ok)
         kept = kept[self._not_contradicting([candidates[i] for i in kept], attrs[kept])]
         copies = self._copies([candidates[i] for i in kept], tokens[kept])
         self._score([candidates[i] for i in kept], attrs[kept])
@@ -272,7 +268,7 @@ class LearnedRelabel(RelabelStrategy):
         out = super().metrics()
         t = self.trainer
         out.update({
-            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_UNSURE: self.unsure, m.RELABEL_GATED_OFF: self.gated_off,
+            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_GATED_OFF: self.gated_off,
             m.RELABEL_GATE_OPEN: t.gate_open,
             m.RELABEL_DATASET_SIZE: len(t.dataset),
             # As of the latest evaluation (None before the first), and the dataset size it was measured at.
@@ -285,7 +281,7 @@ class LearnedRelabel(RelabelStrategy):
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
-        state.update({"trainer": self.trainer.state_dict(), "unparseable": self.unparseable, "unsure": self.unsure,
+        state.update({"trainer": self.trainer.state_dict(), "unparseable": self.unparseable,
                       "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval})
         return state
 
@@ -293,7 +289,6 @@ class LearnedRelabel(RelabelStrategy):
         super().load_state_dict(state)
         self.trainer.load_state_dict(state["trainer"])
         self.unparseable, self.gated_off = int(state["unparseable"]), int(state["gated_off"])
-        self.unsure = int(state.get("unsure", 0))  # absent from checkpoints written before the count
         self._steps_since_eval = int(state["steps_since_eval"])
 
 
