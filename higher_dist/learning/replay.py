@@ -337,15 +337,13 @@ class PrioritizedReplay(EpisodeSampling):  # sample_episodes: whole episodes, fo
                 raise ValueError(f"replay state has {key}={state[key]}, this replay has {getattr(self, key)}")
         if float(state["gamma"]) != self.gamma:  # stored returns were computed with it
             raise ValueError(f"replay state has gamma={state['gamma']}, this replay has {self.gamma}")
-        values = {}
-        for name in self._ARRAYS:
-            value = values[name] = np.asarray(state[name.lstrip("_")])
-            if value.shape != getattr(self, name).shape:
-                raise ValueError(f"replay state {name.lstrip('_')} has shape {value.shape}, "
-                                 f"expected {getattr(self, name).shape}")
-        self.spec.check_cells(values["_frames"], "replay state frames")  # all checked before any is written
-        for name, value in values.items():
-            getattr(self, name)[...] = value
+        values = {name: (getattr(self, name), np.asarray(state[name.lstrip("_")])) for name in self._ARRAYS}
+        for name, (target, value) in values.items():
+            if value.shape != target.shape:
+                raise ValueError(f"replay state {name.lstrip('_')} has shape {value.shape}, expected {target.shape}")
+        self.spec.check_cells(values["_frames"][1], "replay state frames")  # all checked before any is written
+        for target, value in values.values():
+            target[...] = value
         for name in self._INTS:
             setattr(self, name, int(state[name.lstrip("_")]))
         self._tree.load_state_dict({"capacity": self.capacity, "tree": state["tree"],
