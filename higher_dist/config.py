@@ -32,6 +32,7 @@ def is_babyai_world(name: str) -> bool:
 PROFILES = ("default", "paper")  # ours (docs/decisions.md) or the paper's (docs/paper_settings.md)
 FUSIONS = ("film", "concat")
 CORES = ("stack", "gru")  # network.core
+TEXT_ENCODERS = ("gru", "bow")  # network.text
 TARGET_UPDATES = ("period", "polyak")
 DECODINGS = ("greedy", "sample")  # generator.decoding
 RATIO_COUNTS = ("env_frames", "transitions")
@@ -40,6 +41,7 @@ RELABEL_STRATEGIES = ("none", "expert", "noisy", "learned")
 # The fields that take one of a few words, by dotted path: `validate` and docs/configuration.md read this.
 CHOICES: dict[str, tuple[str, ...]] = {
     "preset": PRESETS, "profile": PROFILES, "network.fusion": FUSIONS, "network.core": CORES,
+    "network.text": TEXT_ENCODERS,
     "dqn.target_update": TARGET_UPDATES,
     "replay.ratio_counts": RATIO_COUNTS, "exploration.kind": EXPLORATION_KINDS,
     "relabel.strategy": RELABEL_STRATEGIES, "generator.decoding": DECODINGS,
@@ -76,8 +78,9 @@ class NetworkConfig:
     core: str = "stack"  # memory: stack (the last frame_stack views) | gru (a GRU over the whole episode; frame_stack 1)
     fusion: str = "film"  # how the instruction meets the view: film | concat
     film_blocks: int = 0  # residual FiLM blocks h + relu(FiLM(conv(h))) after the convs; 0: FiLM on the last conv
+    text: str = "gru"  # instruction encoder: gru (a GRU over the words, in order) | bow (bag of words: summed word vectors, one tanh layer)
     word_embed_dim: int = 16  # word embedding of the instruction
-    text_hidden: int = 32  # GRU over the instruction
+    text_hidden: int = 32  # width of the instruction's features (the GRU's state, or the bag of words' layer)
     hidden: int = 64  # width of the Q head's hidden layer
     dueling: bool = True  # dueling head (value + advantages)
     head_init_scale: float = 0.01  # the head's output layers start scaled by this, biases at zero (Q ~ 0)

@@ -144,9 +144,12 @@ def analytic_forward_flops(net: QNetwork, mission_steps: int) -> dict[str, int]:
     linears = [net.trunk] + ([net.film] if net.fusion == "film" else [])
     linears += [net.value, net.advantage] if net.dueling else [net.q]
     q += sum(2 * m.in_features * m.out_features for m in linears)
-    gru = net.text.gru
-    # Torch's CPU GRU runs the hidden product at every step, the first (h0 = 0) included.
-    text = mission_steps * 2 * 3 * gru.hidden_size * (gru.input_size + gru.hidden_size)
+    if hasattr(net.text, "gru"):
+        gru = net.text.gru
+        # Torch's CPU GRU runs the hidden product at every step, the first (h0 = 0) included.
+        text = mission_steps * 2 * 3 * gru.hidden_size * (gru.input_size + gru.hidden_size)
+    else:  # bag of words: the sum is additions only, then one linear layer
+        text = 2 * net.text.out.in_features * net.text.out.out_features
     return {"text": text, "q": q}
 
 

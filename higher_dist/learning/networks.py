@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from higher_dist.config import FUSIONS, NetworkConfig
+from higher_dist.config import FUSIONS, TEXT_ENCODERS, NetworkConfig
 from higher_dist.world.language import PAD as PAD_ID
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
@@ -259,6 +259,35 @@ class InstructionEncoder(nn.Module):
         return h
 
 
+class BagOfWordsEncoder(nn.Module):
+    """Word vectors summed over a mission's real words, then one tanh layer: blind to word order.
+
+    On FetchAttr every word names one attribute value (prefixes name nothing), so order carries nothing
+    and every phrasing of one object is the same bag but for its prefix words; the sum is one gather and
+    one small product where the GRU runs a step per word. PAD words are masked out, so a mission's
+    features do not depend on its padding."""
+
+    def __init__(self, vocab_size: int, word_embed_dim: int, hidden: int):
+        super().__init__()
+        self.hidden = hidden
+        self.embed = nn.Embedding(vocab_size, word_embed_dim, padding_idx=PAD_ID)
+        self.out = nn.Linear(word_embed_dim, hidden)
+
+    def forward(self, mission: torch.Tensor) -> torch.Tensor:
+        real = (mission != PAD_ID).unsqueeze(-1).to(self.embed.weight.dtype)
+        bag = (lookup(mission, self.embed.weight) * real).sum(dim=1)
+        return torch.tanh(self.out(bag))
+
+
+def instruction_encoder(cfg: NetworkConfig, vocab_size: int) -> nn.Module:
+    """The instruction encoder `cfg.text` names."""
+    if cfg.text == "bow":
+        return BagOfWordsEncoder(vocab_size, cfg.word_embed_dim, cfg.text_hidden)
+    if cfg.text == "gru":
+        return InstructionEncoder(vocab_size, cfg.word_embed_dim, cfg.text_hidden)
+    raise ValueError(f"network.text: must be one of {', '.join(TEXT_ENCODERS)}, got {cfg.text!r}")
+
+
 class QNetwork(nn.Module):
     """Q(view stack, mission) over the 4 actions.
 
@@ -282,7 +311,7 @@ class QNetwork(nn.Module):
         if cfg.film_blocks and self.fusion != "film":
             raise ValueError(f"film_blocks: {cfg.film_blocks} block(s) need fusion 'film', got {cfg.fusion!r}")
         self.view = ViewEncoder(cfg.embed_dim, tuple(cfg.conv_channels), cfg.frame_stack, spec, cfg.film_blocks)
-        self.text = InstructionEncoder(spec.vocab_size, cfg.word_embed_dim, cfg.text_hidden)
+        self.text = instruction_encoder(cfg, spec.vocab_size)
         if self.fusion == "film":
             self.film = nn.Linear(cfg.text_hidden, 2 * self.view.film_layers * self.view.out_channels)
             head_in = self.view.out_dim

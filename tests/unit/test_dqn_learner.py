@@ -9,7 +9,7 @@ import pytest
 import torch
 from torch import nn
 
-from higher_dist.config import ConfigError, DQNConfig, from_dict
+from higher_dist.config import ConfigError, DQNConfig, NetworkConfig, from_dict
 from higher_dist.learning.dqn import DQNUpdater, dqn_loss, learning_rate_at
 from higher_dist.learning.networks import QNetwork, load_weights_numpy
 from higher_dist.world.spec import DEFAULT_SPEC
@@ -167,13 +167,16 @@ def test_joint_online_forward_equals_separate_forwards_on_a_real_network() -> No
 
 
 @needs_cxx
-def test_compiled_and_eager_learners_agree_update_by_update() -> None:
+@pytest.mark.parametrize("text", ["gru", "bow"])
+def test_compiled_and_eager_learners_agree_update_by_update(text: str) -> None:
     """The compiled loss (inductor) steps the same as eager: same priorities, metrics and weights after
-    several updates, within float round-off (the compiler may reorder sums)."""
+    several updates, within float round-off (the compiler may reorder sums), with either instruction
+    encoder."""
     rng = np.random.default_rng(10)
     batches = [random_batch(rng, 16) for _ in range(4)]
-    eager = make_learner(target_period=2)
-    compiled = make_learner(target_period=2, compile=True)
+    net = NetworkConfig(**{**SMALL.__dict__, "text": text})
+    eager = DQNUpdater(net, DQNConfig(compile=False, target_period=2), seed=0)
+    compiled = DQNUpdater(net, DQNConfig(compile=True, target_period=2), seed=0)
     compiled.compiled.start(compiled._tensors(batches[0]), background=False)
     assert compiled.compiled.ready, compiled.compiled.failed
     for batch in batches:

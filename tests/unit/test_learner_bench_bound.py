@@ -35,9 +35,9 @@ def test_conv2d_counts_every_output_cell_of_every_kernel():
     assert compute_bound.record(lambda: conv(x)).total == 2 * b * c_in * c_out * k * k * out_side ** 2
 
 
-@pytest.mark.parametrize("film_blocks", [0, 2])
-def test_q_network_forwards_match_the_count_from_layer_shapes(film_blocks):
-    cfg = NetworkConfig(**{**SMALL.__dict__, "film_blocks": film_blocks})
+@pytest.mark.parametrize("film_blocks, text", [(0, "gru"), (2, "gru"), (0, "bow")])
+def test_q_network_forwards_match_the_count_from_layer_shapes(film_blocks, text):
+    cfg = NetworkConfig(**{**SMALL.__dict__, "film_blocks": film_blocks, "text": text})
     learner = DQNUpdater(cfg, DQNConfig(compile=False))
     t = learner._tensors(synthetic_batch(np.random.default_rng(0), 16, cfg.frame_stack))
     steps = int((t["mission"] != 0).sum(dim=1).max())

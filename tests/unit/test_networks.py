@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from higher_dist.config import NetworkConfig
-from higher_dist.learning.networks import InstructionEncoder, QNetwork, ViewEncoder, load_weights_numpy, lookup, weights_numpy
+from higher_dist.learning.networks import BagOfWordsEncoder, InstructionEncoder, QNetwork, ViewEncoder, load_weights_numpy, lookup, weights_numpy
 from higher_dist.world.spec import DEFAULT_SPEC, VIEW_CHANNEL_VALUES
 
 torch.set_num_threads(1)
@@ -149,6 +149,43 @@ def test_unrolled_gru_matches_torch_gru_in_values_and_gradients() -> None:
     assert torch.allclose(ours, theirs, atol=1e-5)
     for a, b in zip(grads(enc.unrolled(words, lengths)), grads(enc(missions))):
         assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_bag_of_words_matches_a_numpy_reference_and_ignores_order_and_padding() -> None:
+    """network.text=bow: tanh(W sum(word vectors of the real words) + b), the same for any order of the
+    words and any padding, and its gradient reaches the word vectors and the layer."""
+    torch.manual_seed(5)
+    enc = BagOfWordsEncoder(VOCAB, word_embed_dim=8, hidden=6)
+    with torch.no_grad():  # a PAD row that is not zero: masking, not the table, must keep PADs out
+        enc.embed.weight[0].normal_()
+    rng = np.random.default_rng(6)
+    missions = random_missions(rng, 7)
+    table, w, b = (t.detach().numpy() for t in (enc.embed.weight, enc.out.weight, enc.out.bias))
+    expected = np.stack([np.tanh(w @ table[m[m != 0]].sum(axis=0) + b) for m in missions])
+    ours = enc(torch.from_numpy(missions))
+    np.testing.assert_allclose(ours.detach().numpy(), expected, atol=1e-5)
+    # The same words in another order, and padded to a longer row: the same features.
+    shuffled = np.zeros((7, 14), np.int64)
+    for i, m in enumerate(missions):
+        words = m[m != 0]
+        shuffled[i, : len(words)] = rng.permutation(words)
+    assert torch.allclose(enc(torch.from_numpy(shuffled)), ours, atol=1e-6)
+    ours.square().sum().backward()
+    assert enc.embed.weight.grad[3:].abs().sum() > 0 and enc.out.weight.grad.abs().sum() > 0
+    assert enc.embed.weight.grad[0].abs().sum() == 0  # PAD words take no part
+
+
+def test_q_network_takes_either_instruction_encoder_and_refuses_another() -> None:
+    torch.manual_seed(7)
+    rng = np.random.default_rng(8)
+    views, missions = as_tensors(random_views(rng, 4, 2), random_missions(rng, 4))
+    for text, encoder in (("gru", InstructionEncoder), ("bow", BagOfWordsEncoder)):
+        net = QNetwork(NetworkConfig(**{**SMALL.__dict__, "text": text}))
+        assert isinstance(net.text, encoder)
+        q = net(views, missions)
+        assert q.shape == (4, 4) and torch.isfinite(q).all()
+    with pytest.raises(ValueError, match="network.text"):
+        QNetwork(NetworkConfig(**{**SMALL.__dict__, "text": "lstm"}))
 
 
 def test_encoder_output_sizes_and_deep_stacks() -> None:
