@@ -259,6 +259,9 @@ class InstructionEncoder(nn.Module):
         return h
 
 
+WORD_INIT_SCALE = 0.1  # the bag of words' word vectors start at this standard deviation
+
+
 class BagOfWordsEncoder(nn.Module):
     """Word vectors summed over a mission's real words, then one tanh layer: blind to word order.
 
@@ -272,6 +275,8 @@ class BagOfWordsEncoder(nn.Module):
         self.hidden = hidden
         self.embed = nn.Embedding(vocab_size, word_embed_dim, padding_idx=PAD_ID)
         self.out = nn.Linear(word_embed_dim, hidden)
+        with torch.no_grad():  # a sum of ~8 unit-variance vectors would saturate the tanh from the start
+            self.embed.weight.mul_(WORD_INIT_SCALE)
 
     def forward(self, mission: torch.Tensor) -> torch.Tensor:
         real = (mission != PAD_ID).unsqueeze(-1).to(self.embed.weight.dtype)

@@ -107,3 +107,16 @@ def test_returns_span_five_steps_except_on_the_small_world_and_a_flag_still_sets
         assert make_config(preset, world).dqn.n_step == n_step
         assert make_config(preset, world, **{"dqn.n_step": 2}).dqn.n_step == 2
     assert make_config("her", world, "paper").dqn.n_step == n_step
+
+
+@pytest.mark.parametrize("world, text", [("paper", "bow"), ("small", "gru"), ("BabyAI-PickupDist-v0", "gru"),
+                                         ("BabyAI-PickupLoc-v0", "gru")])
+def test_the_instruction_encoder_is_the_worlds_and_a_flag_still_sets_it(world, text):
+    """A bag of words on the paper world (its word order carries nothing) for every method, the GRU on
+    BabyAI levels and the small world; the paper profile reads with the paper's GRU; `--set network.text`
+    overrides either."""
+    for preset in ("dqn", "her", "higher"):
+        assert make_config(preset, world).network.text == text
+        other = "gru" if text == "bow" else "bow"
+        assert make_config(preset, world, **{"network.text": other}).network.text == other
+    assert make_config("her", world, "paper").network.text == "gru"
