@@ -37,8 +37,11 @@ class FinishedRun:
 def finished_run(tmp_path_factory) -> FinishedRun:
     base = tmp_path_factory.mktemp("cluster_run")
     run_dir = base / "run"
-    # With a moving average of the weights, so the run also shows it evaluated end to end.
-    watch, launcher, _ = start_cluster(run_dir, base, frames=BUDGET, **{"dqn.average_tau": 0.01})
+    # With a moving average of the weights, so the run also shows it evaluated end to end, and the paper
+    # world's bag-of-words instruction encoder, so its weights travel from the learner to every role (the
+    # other end-to-end tests run the small world's GRU).
+    watch, launcher, _ = start_cluster(run_dir, base, frames=BUDGET,
+                                       **{"dqn.average_tau": 0.01, "network.text": "bow"})
     t0 = time.monotonic()
     try:
         # Poll while it runs: the roles table and the launcher's children give every pid to check later.
@@ -145,6 +148,7 @@ def test_run_dir_holds_config_and_checkpoints(finished_run):
     cfg = json.loads((rd.path / "config.json").read_text())
     assert cfg["preset"] == "higher" and cfg["world"]["name"] == "small" and cfg["frames"] == BUDGET
     assert cfg["actors"] == 2 and cfg["envs_per_actor"] == 8 and cfg["relabel"]["strategy"] == "learned"
+    assert cfg["network"]["text"] == "bow"
     learner = rd.load_checkpoint("learner")
     assert learner is not None, "learner.ckpt missing"
     # The final checkpoint is written right after the final metrics record: the same counters.
