@@ -22,7 +22,7 @@ from torch.utils._pytree import tree_map
 from torch.utils.flop_counter import flop_registry
 
 from higher_dist.launch.layout import machine
-from higher_dist.learning.networks import QNetwork
+from higher_dist.learning.networks import InstructionEncoder, QNetwork
 from higher_dist.world.language import PAD
 
 
@@ -144,7 +144,7 @@ def analytic_forward_flops(net: QNetwork, mission_steps: int) -> dict[str, int]:
     linears = [net.trunk] + ([net.film] if net.fusion == "film" else [])
     linears += [net.value, net.advantage] if net.dueling else [net.q]
     q += sum(2 * m.in_features * m.out_features for m in linears)
-    if hasattr(net.text, "gru"):
+    if isinstance(net.text, InstructionEncoder):
         gru = net.text.gru
         # Torch's CPU GRU runs the hidden product at every step, the first (h0 = 0) included.
         text = mission_steps * 2 * 3 * gru.hidden_size * (gru.input_size + gru.hidden_size)

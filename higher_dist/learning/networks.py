@@ -272,7 +272,6 @@ class BagOfWordsEncoder(nn.Module):
 
     def __init__(self, vocab_size: int, word_embed_dim: int, hidden: int):
         super().__init__()
-        self.hidden = hidden
         self.embed = nn.Embedding(vocab_size, word_embed_dim, padding_idx=PAD_ID)
         self.out = nn.Linear(word_embed_dim, hidden)
         with torch.no_grad():  # a sum of ~8 unit-variance vectors would saturate the tanh from the start
