@@ -157,6 +157,7 @@ class GeneratorConfig:
     min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
     decoding: str = "greedy"  # a relabel's words: greedy (the likeliest) | sample (drawn, as the expert draws a phrasing)
     temperature: float = 1.0  # decoding=sample: words drawn from softmax(logits / temperature)
+    top_p: float = 1.0  # decoding=sample: draw only among the likeliest words that hold this much probability (nucleus)
     updates_per_kframe: float = 10.0  # generator updates per 1000 env frames of original episodes
     eval_every_updates: int = 200  # validation exact match (the gate's input) every this many updates
 
@@ -354,6 +355,7 @@ def validate(cfg: Config) -> None:
     _check(0 < g.val_fraction < 1, f"generator.val_fraction: must be in (0, 1), got {g.val_fraction}")
     _check(0 <= g.min_accuracy <= 1, f"generator.min_accuracy: must be in [0, 1], got {g.min_accuracy}")
     _check(g.temperature > 0, f"generator.temperature: must be > 0, got {g.temperature}")
+    _check(0 < g.top_p <= 1, f"generator.top_p: must lie in (0, 1], got {g.top_p}")
     _check(g.max_len >= 6, f"generator.max_len: must be >= 6 to hold an instruction, got {g.max_len}")
     _check(g.capacity >= 10, f"generator.capacity: must be >= 10, got {g.capacity}")
     _check(g.updates_per_kframe >= 0, f"generator.updates_per_kframe: must be >= 0, got {g.updates_per_kframe}")

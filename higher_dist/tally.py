@@ -4,7 +4,7 @@ is; the learner's evaluation reports the cycling share beside success as it goes
 
 On a BabyAI level the table has a row per location phrase the missions use ("on your left", ..., and
 "none" for missions that name no location), since those missions ask the agent to remember where it
-started. The episodes' layouts and goals are the run's own evaluation goals at the checkpoint's frame
+started; on FetchAttr a row per mission prefix, which names nothing. The episodes' layouts and goals are the run's own evaluation goals at the checkpoint's frame
 count (Seeds.evaluation_env_seeds), so the online and the averaged weights are scored on the same
 episodes, and the success column is the run's evaluation at that count. `--epsilon` acts
 epsilon-greedily instead: then "cycling" only says the views repeated.
@@ -20,14 +20,17 @@ from higher_dist.learning.episode import Episode
 from higher_dist.learning.episode_ends import KINDS, end_of
 from higher_dist.learning.seeds import Seeds
 from higher_dist.world.babyai_language import LOC_PHRASES
+from higher_dist.world.language import PREFIXES as FETCHATTR_PREFIXES
 from higher_dist.world.spec import WorldSpec
 
 
 def mission_group(spec: WorldSpec, ep: Episode) -> str:
-    """The location phrase a BabyAI mission names ("none" if it names none); "all" on FetchAttr."""
-    if spec.family != "babyai":
-        return "all"
+    """The location phrase a BabyAI mission names ("none" if it names none); on FetchAttr the mission's
+    prefix ("go fetch a", ...), which names nothing: an agent that understands the missions succeeds as
+    often under each, and one trained on relabels of a single phrasing may not."""
     text = spec.language.decode(ep.mission)
+    if spec.family != "babyai":
+        return next(p for p in sorted(FETCHATTR_PREFIXES, key=len, reverse=True) if text.startswith(p + " "))
     return next((phrase for phrase in LOC_PHRASES if phrase in text), "none")
 
 

@@ -10,7 +10,7 @@ import torch
 from higher_dist.learning.hindsight.generator_measure import make_pairs
 from higher_dist.config import GeneratorConfig, WorldConfig
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
-from higher_dist.learning.hindsight.generator import GeneratorTrainer, InstructionGenerator, decoder_targets
+from higher_dist.learning.hindsight.generator import GeneratorTrainer, InstructionGenerator, decoder_targets, nucleus
 from higher_dist.learning.hindsight.generator_data import GeneratorDataset, semantic_accuracy, validation_flags
 from higher_dist.world.language import BEG, END, MISSION_LEN, PAD, VOCAB, encode, expert_tokens
 
@@ -60,6 +60,42 @@ def test_greedy_respects_the_length_cap_and_the_mission_encoding():
     again = model.sample(views, max_len=4, generator=torch.Generator().manual_seed(1), temperature=1.5)
     assert torch.equal(sampled, again)
     assert int((sampled != PAD).sum(dim=1).max()) <= 4
+
+
+def nucleus_reference(probs: np.ndarray, top_p: float) -> np.ndarray:
+    out = np.zeros_like(probs)
+    for i, row in enumerate(probs):
+        total = 0.0
+        for j in np.argsort(-row, kind="stable"):
+            out[i, j] = row[j]
+            total += row[j]
+            if total >= top_p:
+                break
+    return out
+
+
+def test_the_nucleus_keeps_the_likeliest_words_up_to_top_p_as_a_numpy_reference_does():
+    rng = np.random.default_rng(3)
+    probs = rng.dirichlet(np.full(12, 0.5), size=64)
+    for top_p in (0.05, 0.5, 0.9, 0.999, 1.0):
+        got = nucleus(torch.as_tensor(probs), top_p).numpy()
+        np.testing.assert_allclose(got, nucleus_reference(probs, top_p), atol=1e-12)
+        assert ((got > 0).sum(axis=1) >= 1).all()  # the likeliest word is never dropped
+    # A sure word is the only one kept; near-equal words stay a draw among themselves.
+    sure = torch.tensor([[0.95, 0.03, 0.02], [0.34, 0.33, 0.33]], dtype=torch.float64)
+    kept = nucleus(sure, 0.9) > 0
+    assert kept.tolist() == [[True, False, False], [True, True, True]]
+
+
+def test_nucleus_sampling_draws_only_words_inside_the_nucleus():
+    model = InstructionGenerator(SMALL)
+    views = torch.as_tensor(np.random.default_rng(0).integers(0, 5, size=(32, 7, 7, 4)), dtype=torch.uint8)
+    greedy = model.greedy(views, max_len=1)
+    # top_p so small that each nucleus is the likeliest word alone: sampling becomes greedy decoding.
+    tiny = model.sample(views, max_len=1, generator=torch.Generator().manual_seed(2), top_p=1e-6)
+    assert torch.equal(tiny, greedy)
+    wide = [model.sample(views, max_len=1, generator=torch.Generator().manual_seed(k)) for k in range(4)]
+    assert any(not torch.equal(w, greedy) for w in wide)  # an untrained generator's plain draws differ
 
 
 def test_generator_learns_expert_pairs_and_describes_unseen_combinations():

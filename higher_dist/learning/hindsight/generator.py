@@ -142,16 +142,30 @@ class InstructionGenerator(nn.Module):
 
     def sample(self, views: torch.Tensor, max_len: int | None = None,
                generator: torch.Generator | None = None, temperature: float = 1.0,
-               where: torch.Tensor | None = None) -> torch.Tensor:
-        """Like `greedy` but each word is drawn from softmax(logits / temperature)."""
+               where: torch.Tensor | None = None, top_p: float = 1.0) -> torch.Tensor:
+        """Like `greedy` but each word is drawn from softmax(logits / temperature), among the fewest
+        likeliest words whose probabilities sum to at least `top_p` (nucleus sampling): words the
+        generator finds about equally likely (phrasings) stay a draw, a word it is sure of is kept."""
         if temperature <= 0:
             return self.greedy(views, max_len, where)
 
         def choose(logits: torch.Tensor) -> torch.Tensor:
             probs = torch.softmax(logits / temperature, dim=1)
+            if top_p < 1.0:
+                probs = nucleus(probs, top_p)
             return torch.multinomial(probs, 1, generator=generator)[:, 0]
 
         return self._decode(views, self.cfg.max_len if max_len is None else max_len, choose, where)
+
+
+def nucleus(probs: torch.Tensor, top_p: float) -> torch.Tensor:
+    """(B, V) probabilities with every word outside each row's nucleus zeroed: the likeliest words, in
+    order, up to and including the first at which their running sum reaches `top_p`."""
+    sorted_probs, order = probs.sort(dim=1, descending=True)
+    before = sorted_probs.cumsum(dim=1) - sorted_probs  # mass of the likelier words
+    keep_sorted = before < top_p  # the likeliest word always stays (nothing before it)
+    keep = torch.zeros_like(keep_sorted).scatter(1, order, keep_sorted)
+    return probs * keep
 
 
 def decoder_targets(missions: torch.Tensor) -> torch.Tensor:
@@ -239,7 +253,8 @@ class GeneratorTrainer:
             if draws is None:
                 out = self.model.greedy(inputs, where=at)
             else:
-                out = self.model.sample(inputs, generator=draws, temperature=self.cfg.temperature, where=at)
+                out = self.model.sample(inputs, generator=draws, temperature=self.cfg.temperature, where=at,
+                                        top_p=self.cfg.top_p)
             chunks.append(out.cpu().numpy()[: len(chunk)])
         return np.concatenate(chunks).astype(np.int64)
 
