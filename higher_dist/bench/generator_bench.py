@@ -11,7 +11,7 @@ import json
 
 import torch
 
-from higher_dist.config_presets import world_by_name
+from higher_dist.config_presets import make_config
 from higher_dist.learning.hindsight.generator_measure import measure_generator
 
 
@@ -39,7 +39,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.pairs < 1 or args.steps < 1 or args.eval_pairs < 1:
         parser.error("--pairs, --steps and --eval-pairs must be >= 1")
     torch.set_num_threads(args.threads)
-    result = measure_generator(args.pairs, args.steps, args.seed, world_by_name(args.world), args.eval_pairs)
+    # The generator HIGhER runs on that world (its world's lr and sizes), as `higher-reproduce generator` does.
+    cfg = make_config("higher", args.world)
+    result = measure_generator(args.pairs, args.steps, args.seed, cfg.world, args.eval_pairs, cfg=cfg.generator)
     print(format_table(result))
     print(json.dumps({k: v for k, v in result.items() if k not in ("seen", "unseen")}
                      | {f"{s}_{c}": round(result[s][c], 4) for s in ("seen", "unseen")

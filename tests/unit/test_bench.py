@@ -115,3 +115,21 @@ def test_checkpoint_bench_writes_a_real_checkpoint_of_a_full_replay(capsys, tmp_
     assert last["size_mib"] > 10_000 * 196 / 2**20 > last["size_without_replay_mib"]
     assert last["pause_s"] >= last["write_s"] > 0 and last["resume_load_s"] > 0
     assert list(tmp_path.iterdir()) == []  # its temp folder is removed
+
+
+def test_generator_bench_measures_the_generator_higher_runs_on_that_world(capsys, monkeypatch):
+    from higher_dist.bench import generator_bench
+    from higher_dist.config_presets import make_config
+
+    seen = []
+    real = generator_bench.measure_generator
+
+    def recording(*args, **kwargs):
+        seen.append(kwargs["cfg"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(generator_bench, "measure_generator", recording)
+    assert main(["generator", "--pairs", "16", "--steps", "2", "--eval-pairs", "16", "--world", "paper"]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert last["pairs"] == 16 and last["steps"] == 2 and 0 <= last["seen_exact_match"] <= 1
+    assert seen == [make_config("higher", "paper").generator]
