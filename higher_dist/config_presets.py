@@ -9,8 +9,8 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
-from higher_dist.config import (PRESETS, PROFILES, WORLDS, Config, ConfigError, EvalConfig, GeneratorConfig, RelabelConfig,
-                                WorldConfig, from_dict, is_babyai_world, override)
+from higher_dist.config import (PRESETS, PROFILES, WORLDS, Config, ConfigError, EvalConfig, GeneratorConfig,
+                                RelabelConfig, WorldConfig, from_dict, is_babyai_world, override)
 
 
 def small_world() -> WorldConfig:

@@ -4,9 +4,10 @@ is; the learner's evaluation reports the cycling share beside success as it goes
 
 On a BabyAI level the table has a row per location phrase the missions use ("on your left", ..., and
 "none" for missions that name no location), since those missions ask the agent to remember where it
-started; on FetchAttr a row per mission prefix, which names nothing. The episodes' layouts and goals are the run's own evaluation goals at the checkpoint's frame
-count (Seeds.evaluation_env_seeds), so the online and the averaged weights are scored on the same
-episodes, and the success column is the run's evaluation at that count. `--epsilon` acts
+started; on FetchAttr a row per mission prefix, which names nothing. The episodes' layouts and goals
+are the run's own evaluation goals at the checkpoint's frame count (Seeds.evaluation_env_seeds), so the
+online and the averaged weights are scored on the same episodes, and the success column is the run's
+evaluation at that count. `--epsilon` acts
 epsilon-greedily instead: then "cycling" only says the views repeated.
 """
 from __future__ import annotations
