@@ -7,8 +7,8 @@ On a BabyAI level the table has a row per location phrase the missions use ("on 
 started; on FetchAttr a row per mission prefix, which names nothing. The episodes' layouts and goals
 are the run's own evaluation goals at the checkpoint's frame count (Seeds.evaluation_env_seeds), so the
 online and the averaged weights are scored on the same episodes, and the success column is the run's
-evaluation at that count. `--epsilon` acts
-epsilon-greedily instead: then "cycling" only says the views repeated.
+evaluation at that count. `--epsilon` acts epsilon-greedily instead: then "cycling" only says the views
+repeated.
 """
 from __future__ import annotations
 
