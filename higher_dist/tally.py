@@ -21,7 +21,6 @@ from higher_dist.learning.episode import Episode
 from higher_dist.learning.episode_ends import KINDS, end_of
 from higher_dist.learning.seeds import Seeds
 from higher_dist.world.babyai_language import LOC_PHRASES
-from higher_dist.world.language import PREFIXES as FETCHATTR_PREFIXES
 from higher_dist.world.spec import WorldSpec
 
 
@@ -29,9 +28,9 @@ def mission_group(spec: WorldSpec, ep: Episode) -> str:
     """The location phrase a BabyAI mission names ("none" if it names none); on FetchAttr the mission's
     prefix ("go fetch a", ...), which names nothing: an agent that understands the missions succeeds as
     often under each, and one trained on relabels of a single phrasing may not."""
-    text = spec.language.decode(ep.mission)
     if spec.family != "babyai":
-        return next(p for p in sorted(FETCHATTR_PREFIXES, key=len, reverse=True) if text.startswith(p + " "))
+        return spec.language.prefix(ep.mission) or "none"
+    text = spec.language.decode(ep.mission)
     return next((phrase for phrase in LOC_PHRASES if phrase in text), "none")
 
 

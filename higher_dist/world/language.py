@@ -95,6 +95,14 @@ def decode(token_ids) -> str:
     return tokens.decode(token_ids, VOCAB)
 
 
+def prefix(token_ids) -> str | None:
+    """The mission's prefix phrase ("go fetch a", ...): its words before the first attribute word; None if
+    the words before it are not one of `PREFIXES`."""
+    words = _words_of(token_ids) or []
+    head = tuple(VOCAB[w] for w in itertools.takewhile(lambda w: w not in _WORD_ATTR, words))
+    return " ".join(head) if head in _PREFIX_WORDS else None
+
+
 def parse(tokens_or_text) -> np.ndarray | None:
     """An instruction (text or word ids) -> the `(4,)` int8 attributes it names, or None.
 
