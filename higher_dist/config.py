@@ -149,6 +149,8 @@ class GeneratorConfig:
     hidden: int = 128  # GRU decoder width
     max_len: int = 12  # decoding cap, END included
     lr: float = 1e-3  # Adam learning rate
+    lr_decay_updates: int = 0  # > 0: lr falls linearly to lr * lr_end_fraction over this many generator updates
+    lr_end_fraction: float = 0.1  # where the lr decay ends, as a fraction of lr
     batch_size: int = 64  # pairs per update
     capacity: int = 20_000  # (observation, instruction) pairs kept, FIFO
     val_fraction: float = 0.1  # pairs held out to measure the generator (the gate's input)
@@ -354,6 +356,9 @@ def validate(cfg: Config) -> None:
     g = cfg.generator
     _check(0 < g.val_fraction < 1, f"generator.val_fraction: must be in (0, 1), got {g.val_fraction}")
     _check(0 <= g.min_accuracy <= 1, f"generator.min_accuracy: must be in [0, 1], got {g.min_accuracy}")
+    _check(g.lr_decay_updates >= 0,
+           f"generator.lr_decay_updates: must be >= 0 (0: constant lr), got {g.lr_decay_updates}")
+    _check(0.0 < g.lr_end_fraction <= 1.0, f"generator.lr_end_fraction: must be in (0, 1], got {g.lr_end_fraction}")
     _check(g.temperature > 0, f"generator.temperature: must be > 0, got {g.temperature}")
     _check(0 < g.top_p <= 1, f"generator.top_p: must lie in (0, 1], got {g.top_p}")
     _check(g.max_len >= 6, f"generator.max_len: must be >= 6 to hold an instruction, got {g.max_len}")

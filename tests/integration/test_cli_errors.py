@@ -64,6 +64,8 @@ def test_cluster_refuses_bad_flags_as_a_process(tmp_path, flags, expected):
     (["--set", "exploration.repeat_max=0"], ["exploration.repeat_max", "must be >= 1"]),
     (["--set", "dqn.average_tau=-0.1"], ["dqn.average_tau", "must be in [0, 1]"]),
     (["--set", "dqn.lr_end_fraction=0"], ["dqn.lr_end_fraction", "must be in (0, 1]"]),
+    (["--set", "generator.lr_end_fraction=1.5"], ["generator.lr_end_fraction", "must be in (0, 1]"]),
+    (["--set", "generator.lr_decay_updates=-1"], ["generator.lr_decay_updates", "must be >= 0"]),
     (["--set", "frames"], ["--set", "FIELD=VALUE"]),
 ])
 def test_cluster_refuses_bad_flags_and_configs(tmp_path, flags, expected):

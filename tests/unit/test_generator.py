@@ -10,7 +10,8 @@ import torch
 from higher_dist.learning.hindsight.generator_measure import make_pairs
 from higher_dist.config import GeneratorConfig, WorldConfig
 from higher_dist.learning.episode import SUCCESS, TIMEOUT, WRONG_PICK, Episode
-from higher_dist.learning.hindsight.generator import GeneratorTrainer, InstructionGenerator, decoder_targets, nucleus
+from higher_dist.learning.hindsight.generator import (GeneratorTrainer, InstructionGenerator, decoder_targets,
+                                                      generator_lr, nucleus)
 from higher_dist.learning.hindsight.generator_data import GeneratorDataset, semantic_accuracy, validation_flags
 from higher_dist.world.language import BEG, END, MISSION_LEN, PAD, VOCAB, encode, expert_tokens
 
@@ -204,6 +205,29 @@ def test_trainer_checkpoint_round_trip_continues_identically():
     b.load_state_dict(a.state_dict())
     assert b.steps == 5 and b.val_accuracy == a.val_accuracy and len(b.dataset) == len(a.dataset)
     assert a.train_steps(3) == pytest.approx(b.train_steps(3), rel=1e-6)
+    assert np.array_equal(a.generate(views[:20]), b.generate(views[:20]))
+
+
+def test_the_generator_lr_falls_linearly_over_its_updates_and_stays_at_its_end():
+    assert [generator_lr(SMALL, t) for t in (0, 10, 10 ** 6)] == [SMALL.lr] * 3  # no decay: constant
+    cfg = replace(SMALL, lr=2e-3, lr_decay_updates=100, lr_end_fraction=0.25)
+    expected = [2e-3 * (1 - min(t, 100) / 100 * 0.75) for t in (0, 1, 50, 99, 100, 101, 5000)]
+    assert [generator_lr(cfg, t) for t in (0, 1, 50, 99, 100, 101, 5000)] == pytest.approx(expected)
+
+
+def test_the_trainer_steps_at_the_scheduled_lr_and_a_restored_one_goes_on_from_its_step():
+    cfg = replace(SMALL, lr_decay_updates=10, lr_end_fraction=0.1)
+    views, missions, _ = make_pairs(FEW_OBJECTS, 100, "train", np.random.default_rng(2))
+    a = GeneratorTrainer(cfg, seed=3)
+    a.dataset.add_many(views, missions)
+    a.train_steps(4)
+    assert a.optimizer.param_groups[0]["lr"] == pytest.approx(generator_lr(cfg, 3))  # the 4th update's
+    b = GeneratorTrainer(cfg, seed=7)
+    b.load_state_dict(a.state_dict())
+    a.train_steps(20)
+    b.train_steps(20)
+    for t in (a, b):
+        assert t.steps == 24 and t.optimizer.param_groups[0]["lr"] == pytest.approx(cfg.lr * 0.1)
     assert np.array_equal(a.generate(views[:20]), b.generate(views[:20]))
 
 

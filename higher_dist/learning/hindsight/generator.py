@@ -176,6 +176,16 @@ def decoder_targets(missions: torch.Tensor) -> torch.Tensor:
     return targets
 
 
+def generator_lr(cfg: GeneratorConfig, steps: int) -> float:
+    """Adam's learning rate for the generator's update number `steps`: cfg.lr, falling linearly to
+    cfg.lr * lr_end_fraction over cfg.lr_decay_updates updates when that is > 0. Counted in updates, not
+    frames: the generator's pace per frame is set apart (updates_per_kframe), and its data grows with them."""
+    if cfg.lr_decay_updates <= 0:
+        return cfg.lr
+    progress = min(1.0, max(0, steps) / cfg.lr_decay_updates)
+    return cfg.lr * (1.0 - progress * (1.0 - cfg.lr_end_fraction))
+
+
 def inference_batch(n: int) -> int:
     """The batch size `n` views are padded to for greedy decoding: the next power of two, at least 8 and
     at most EVAL_CHUNK, so decoding only ever sees a handful of shapes."""
@@ -215,7 +225,10 @@ class GeneratorTrainer:
             return float("nan")
         self.model.train()
         total = 0.0
-        for _ in range(n):
+        for i in range(n):
+            if self.cfg.lr_decay_updates > 0:
+                for group in self.optimizer.param_groups:
+                    group["lr"] = generator_lr(self.cfg, self.steps + i)
             views, tokens, where = self.dataset.sample_train(self.cfg.batch_size, self.rng)
             loss = self.model.loss(torch.as_tensor(views, device=self.device),
                                    torch.as_tensor(tokens, device=self.device),
