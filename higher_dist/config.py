@@ -161,6 +161,8 @@ class GeneratorConfig:
     temperature: float = 1.0  # decoding=sample: words drawn from softmax(logits / temperature)
     top_p: float = 1.0  # decoding=sample: draw only among the likeliest words that hold this much probability (nucleus)
     updates_per_kframe: float = 10.0  # generator updates per 1000 env frames of original episodes
+    trained_accuracy: float = 0.0  # > 0: from this validation exact match up, train at trained_updates_per_kframe
+    trained_updates_per_kframe: float = 2.0  # the pace while the generator is at trained_accuracy or above
     eval_every_updates: int = 200  # validation exact match (the gate's input) every this many updates
 
 
@@ -363,6 +365,10 @@ def validate(cfg: Config) -> None:
     _check(0 < g.top_p <= 1, f"generator.top_p: must lie in (0, 1], got {g.top_p}")
     _check(g.max_len >= 6, f"generator.max_len: must be >= 6 to hold an instruction, got {g.max_len}")
     _check(g.capacity >= 10, f"generator.capacity: must be >= 10, got {g.capacity}")
+    _check(0 <= g.trained_accuracy <= 1,
+           f"generator.trained_accuracy: must be in [0, 1] (0: off), got {g.trained_accuracy}")
+    _check(g.trained_updates_per_kframe >= 0,
+           f"generator.trained_updates_per_kframe: must be >= 0, got {g.trained_updates_per_kframe}")
     _check(g.updates_per_kframe >= 0, f"generator.updates_per_kframe: must be >= 0, got {g.updates_per_kframe}")
     _check(g.eval_every_updates >= 1, f"generator.eval_every_updates: must be >= 1, got {g.eval_every_updates}")
     rl = cfg.relabel

@@ -40,28 +40,54 @@ class GeneratorPace:
     The runner and the relabeler service both feed it the frames of the original episodes they handle
     and train what it says is owed, so the generator gets the same training per frame whatever the
     machine's speed. Updates that cannot run yet (too few pairs for a batch) are forgiven, not banked.
+
+    With `trained_accuracy` > 0, frames seen while the generator's validation exact match is at or above
+    it earn `trained_updates_per_kframe` instead: early on the generator learns from a few pairs many
+    times over and needs every update, later it is right and the relabeler's core is better spent on the
+    rest of the run. The pace follows the latest measurement both ways (`follow`).
     """
 
-    def __init__(self, updates_per_kframe: float):
+    def __init__(self, updates_per_kframe: float, trained_accuracy: float = 0.0,
+                 trained_updates_per_kframe: float | None = None):
         self.rate = float(updates_per_kframe) / 1000.0
+        trained = updates_per_kframe if trained_updates_per_kframe is None else trained_updates_per_kframe
+        self.trained_rate = float(trained) / 1000.0
+        self.trained_accuracy = float(trained_accuracy)
+        self.trained = False  # the generator's latest measurement is at trained_accuracy or above
         self.frames = 0
+        self.frames_trained = 0  # of `frames`, those seen while trained
         self.settled = 0  # updates done or forgiven
 
     def add_frames(self, frames: int) -> None:
         self.frames += int(frames)
+        if self.trained:
+            self.frames_trained += int(frames)
+
+    def follow(self, accuracy: float | None) -> None:
+        """The generator's latest validation exact match (None: not measured yet) sets the pace of the
+        frames to come."""
+        self.trained = self.trained_accuracy > 0 and accuracy is not None and accuracy >= self.trained_accuracy
 
     @property
     def owed(self) -> int:
-        return max(0, int(self.frames * self.rate) - self.settled)
+        earned = (self.frames - self.frames_trained) * self.rate + self.frames_trained * self.trained_rate
+        return max(0, int(earned) - self.settled)
+
+    @property
+    def updates_per_kframe(self) -> float:
+        """The pace the frames to come earn."""
+        return 1000.0 * (self.trained_rate if self.trained else self.rate)
 
     def settle(self, updates: int) -> None:
         self.settled += int(updates)
 
     def state_dict(self) -> dict:
-        return {"frames": self.frames, "settled": self.settled}
+        return {"frames": self.frames, "settled": self.settled, "frames_trained": self.frames_trained,
+                "trained": self.trained}
 
     def load_state_dict(self, state: dict) -> None:
         self.frames, self.settled = int(state["frames"]), int(state["settled"])
+        self.frames_trained, self.trained = int(state.get("frames_trained", 0)), bool(state.get("trained", False))
 
 
 def train_generator(strategy: RelabelStrategy, pace: GeneratorPace, max_updates: int | None = None) -> int:
@@ -72,6 +98,8 @@ def train_generator(strategy: RelabelStrategy, pace: GeneratorPace, max_updates:
     ran = strategy.train(owed)
     # An empty result means the strategy could not train yet (no generator, or too few pairs).
     pace.settle(owed)
+    if pace.trained_accuracy > 0:
+        pace.follow(strategy.generator_accuracy)
     return owed if ran else 0
 
 
@@ -91,7 +119,8 @@ class AgentBuilder:
         return make_relabel_strategy(self.cfg, seed=self.seeds.relabeler)
 
     def generator_pace(self) -> GeneratorPace:
-        return GeneratorPace(self.cfg.generator.updates_per_kframe)
+        g = self.cfg.generator
+        return GeneratorPace(g.updates_per_kframe, g.trained_accuracy, g.trained_updates_per_kframe)
 
     def collector(self, actor: int) -> EpisodeCollector:
         n_envs = self.cfg.envs_per_actor

@@ -137,10 +137,12 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
                 t_w, n_w = relabels_window
                 relabels_per_s = (service.relabelled - n_w) / max(now - t_w, 1e-9)
                 relabels_window = (now, service.relabelled)
+                pace = service.pace.updates_per_kframe if service.trainable else None  # an expert trains nothing
                 client.send("register", {"role": "relabeler", "endpoint": episodes_endpoint})
                 client.stats(plain_record({**service.strategy.metrics(), m.EPISODES: service.received,
                                            m.RELABELS_MADE: service.relabelled, m.RELABELS_PER_S: round(relabels_per_s, 2),
-                                           m.HANDLER_ERRORS: guard.errors, m.GENERATOR_UPDATES_OWED: service.pace.owed}))
+                                           m.HANDLER_ERRORS: guard.errors, m.GENERATOR_UPDATES_OWED: service.pace.owed,
+                                           m.GENERATOR_PACE: pace}))
             if checkpoints(now):
                 with internal("checkpoint writing"):
                     rd.save_checkpoint("relabeler", service.state_dict())

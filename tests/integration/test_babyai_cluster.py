@@ -13,6 +13,7 @@ import pytest
 from rich.console import Console
 
 from hd_harness import Proc, RunWatch, entry
+from higher_dist.config_presets import make_config
 from higher_dist.launch.topology import free_base_port
 from higher_dist.roles.dashboard_view import DashboardState, render
 
@@ -71,6 +72,10 @@ def test_relabelled_episodes_reach_the_replay(babyai_run):
     assert last["replay_wrong_pick"] == 0  # a wrong outcome never ends a BabyAI episode: failures time out
     assert 0.0 <= last["relabel_accuracy"] <= 1.0
     assert last["preset"] != "higher" or last["generator_val_accuracy"] >= 0.5
+    # The relabeler reports the pace its generator trains at; an expert has no generator to pace.
+    level = last["world"]
+    paced = make_config("higher", level).generator.updates_per_kframe if last["preset"] == "higher" else None
+    assert last["generator_pace"] == paced
 
 
 def test_greedy_evaluation_scores_the_levels_own_missions_only(babyai_run):

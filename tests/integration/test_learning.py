@@ -55,6 +55,20 @@ def test_higher_relabels_with_its_learned_generator():
     assert m["relabel_accuracy"] is not None and m["relabel_accuracy"] >= 0.5
 
 
+def test_a_trained_generator_trains_at_the_trained_pace():
+    # The small world's generator passes 0.5 exact match within the run: from then on its frames earn
+    # the trained pace (5 per 1000 frames) instead of the small world's 50.
+    cfg, runner, _ = run("higher", 12_000, **{"generator.n_min": 60, "eval.every_frames": 10**9,
+                                               "generator.trained_accuracy": 0.5,
+                                               "generator.trained_updates_per_kframe": 5.0})
+    pace, trainer = runner.pace, runner.relabeler.trainer
+    assert trainer.val_accuracy >= 0.5 and 0 < pace.frames_trained < pace.frames
+    full = cfg.generator.updates_per_kframe
+    earned = int((pace.frames - pace.frames_trained) * full / 1000 + pace.frames_trained * 5.0 / 1000)
+    assert pace.settled == earned < int(pace.frames * full / 1000)
+    assert trainer.steps <= pace.settled
+
+
 def test_the_recurrent_core_learns_the_small_world_well_above_chance():
     cfg, runner, records = run("her", 12_000, **{"network.core": "gru", "eval.every_frames": 12_000,
                                                  "eval.episodes": 64})

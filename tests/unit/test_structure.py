@@ -110,6 +110,46 @@ def test_generator_pace_is_per_frame_and_forgives_what_cannot_run():
     assert train_generator(strategy, pace) == 70 and strategy.steps == 100
 
 
+def test_a_trained_generator_earns_the_trained_pace_until_its_accuracy_falls_back():
+    pace = GeneratorPace(updates_per_kframe=10, trained_accuracy=0.9, trained_updates_per_kframe=2)
+
+    class Measured:
+        generator_accuracy = None
+
+        def train(self, n):
+            return {"loss": 1.0}
+
+    strategy = Measured()
+    pace.add_frames(1000)
+    assert train_generator(strategy, pace) == 10 and not pace.trained  # not measured yet: full pace
+    strategy.generator_accuracy = 0.95
+    pace.add_frames(1000)
+    assert train_generator(strategy, pace) == 10 and pace.trained  # these frames came before it was measured
+    pace.add_frames(3000)
+    assert pace.owed == 6 and train_generator(strategy, pace) == 6
+    strategy.generator_accuracy = 0.85  # a shift in what the agent picks: back to the full pace
+    pace.add_frames(1000)
+    assert train_generator(strategy, pace) == 2 and not pace.trained
+    pace.add_frames(1000)
+    assert pace.owed == 10
+    again = GeneratorPace(updates_per_kframe=10, trained_accuracy=0.9, trained_updates_per_kframe=2)
+    again.load_state_dict(pace.state_dict())
+    assert (again.owed, again.frames_trained, again.trained) == (10, 4000, False)
+    off = GeneratorPace(updates_per_kframe=10)  # trained_accuracy 0: one pace whatever the accuracy
+    off.follow(1.0)
+    off.add_frames(1000)
+    assert not off.trained and off.owed == 10
+
+
+def test_the_builder_paces_the_generator_as_configured():
+    cfg = make_config("higher", "small", **{"generator.trained_accuracy": 0.97,
+                                            "generator.trained_updates_per_kframe": 1.5})
+    pace = AgentBuilder(cfg).generator_pace()
+    assert (pace.rate, pace.trained_accuracy, pace.trained_rate) == (50 / 1000, 0.97, 1.5 / 1000)
+    with pytest.raises(ConfigError, match="generator.trained_accuracy"):
+        make_config("higher", "small", **{"generator.trained_accuracy": 1.5})
+
+
 def test_runner_trains_the_generator_at_the_configured_pace():
     from higher_dist.learning.runner import SingleProcessRunner
 

@@ -103,6 +103,11 @@ class RelabelStrategy:
         """Spend up to `budget_steps` gradient steps on the generator (only the learned strategy does)."""
         return {}
 
+    @property
+    def generator_accuracy(self) -> float | None:
+        """The generator's latest validation exact match; None without a generator or a measurement."""
+        return None
+
     def _not_contradicting(self, candidates: list[Outcome], attrs: np.ndarray) -> np.ndarray:
         """Indices of the relabels that do not name the goal the episode just failed. Such a copy would
         store the same transitions with reward 1 beside the original with reward 0; it is dropped and
@@ -263,6 +268,10 @@ class LearnedRelabel(RelabelStrategy):
             self._steps_since_eval = 0
             out.update({f"val_{k}": v for k, v in self.trainer.evaluate().items()})
         return out
+
+    @property
+    def generator_accuracy(self) -> float | None:
+        return self.trainer.val_accuracy if self.trainer.evaluations else None
 
     def metrics(self) -> dict[str, Any]:
         out = super().metrics()
