@@ -4,7 +4,8 @@ Episodes come in on its PULL socket and are checked against the run's world wher
 (an actor never sends relabelled copies, so one that claims to is dropped); successes feed the
 generator's dataset; wrong picks are relabelled by the preset's strategy (learned generator behind its
 gate, expert, noisy expert or none); originals and copies go on to the learner. The generator trains at
-the pace the config sets per env frame (`generator.updates_per_kframe`, enforced by the builder's
+the pace the config sets per env frame (`generator.updates_per_kframe`, and `trained_updates_per_kframe`
+while its validation exact match is at `generator.trained_accuracy` or above; enforced by the builder's
 `GeneratorPace` exactly as in the single-process runner), in short slices between messages; when it
 falls behind by more than a few slices the relabeler stops reading until it has caught up, which pushes
 back on the actors instead of letting the pace depend on the machine. When the learner pushes back (its
