@@ -98,7 +98,7 @@ def train_generator(strategy: RelabelStrategy, pace: GeneratorPace, max_updates:
     ran = strategy.train(owed)
     # An empty result means the strategy could not train yet (no generator, or too few pairs).
     pace.settle(owed)
-    if pace.trained_accuracy > 0:
+    if pace.trained_accuracy > 0:  # only a paced generator is asked for its accuracy
         pace.follow(strategy.generator_accuracy)
     return owed if ran else 0
 

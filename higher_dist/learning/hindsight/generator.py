@@ -23,6 +23,7 @@ from torch import nn
 from higher_dist.config import GeneratorConfig
 from higher_dist.learning.episode import Episode
 from higher_dist.learning.devices import resolve_device
+from higher_dist.learning.exploration import linear_schedule
 from higher_dist.learning.hindsight.generator_data import GeneratorDataset, semantic_accuracy
 from higher_dist.learning.networks import ViewEncoder
 from higher_dist.learning.seeds import RelabelerSeeds
@@ -182,8 +183,7 @@ def generator_lr(cfg: GeneratorConfig, steps: int) -> float:
     frames: the generator's pace per frame is set apart (updates_per_kframe), and its data grows with them."""
     if cfg.lr_decay_updates <= 0:
         return cfg.lr
-    progress = min(1.0, max(0, steps) / cfg.lr_decay_updates)
-    return cfg.lr * (1.0 - progress * (1.0 - cfg.lr_end_fraction))
+    return linear_schedule(steps, cfg.lr, cfg.lr * cfg.lr_end_fraction, cfg.lr_decay_updates)
 
 
 def inference_batch(n: int) -> int:

@@ -281,7 +281,7 @@ class LearnedRelabel(RelabelStrategy):
             m.RELABEL_GATE_OPEN: t.gate_open,
             m.RELABEL_DATASET_SIZE: len(t.dataset),
             # As of the latest evaluation (None before the first), and the dataset size it was measured at.
-            m.GENERATOR_VAL_ACCURACY: t.val_accuracy if t.evaluations else None,
+            m.GENERATOR_VAL_ACCURACY: self.generator_accuracy,
             m.GENERATOR_VAL_AT_PAIRS: t.val_at_pairs,
             m.GENERATOR_TRAIN_STEPS: t.steps,
             m.GENERATOR_LOSS: None if np.isnan(t.last_loss) else t.last_loss, m.GENERATOR_EVALUATIONS: t.evaluations,
