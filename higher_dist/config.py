@@ -21,6 +21,7 @@ PRESETS = ("dqn", "her", "noisy-her", "higher", "reward")  # the paper's methods
 WORLDS = ("paper", "small")  # our own worlds; a BabyAI level is named by its gymnasium id
 # Distinct achieved outcomes one episode records at most (world/spec.py: the first and MAX_LATER more).
 MAX_OUTCOMES = 8
+MAX_HELD_WHILE_GATED = 100_000  # relabel.held_while_gated: about 1 GB of views on the paper world
 BABYAI_PREFIX = "BabyAI-"
 
 
@@ -172,6 +173,8 @@ class RelabelConfig:
     noise_p: float = 0.2  # noisy expert: each attribute swapped to another value with this probability
     # BabyAI levels record several outcomes per episode, FetchAttr one; more than this: a random choice.
     max_per_episode: int = 4  # relabelled copies of one failed episode at most, one per distinct outcome
+    # learned: the newest failed episodes kept while the generator's gate is shut, relabelled once it opens
+    held_while_gated: int = 0  # (0: those episodes are never relabelled)
 
 
 @dataclass(frozen=True)
@@ -376,6 +379,12 @@ def validate(cfg: Config) -> None:
     _check(isinstance(rl.max_per_episode, numbers.Integral) and not isinstance(rl.max_per_episode, bool)
            and 1 <= rl.max_per_episode <= MAX_OUTCOMES,
            f"relabel.max_per_episode: must be an integer in [1, {MAX_OUTCOMES}], got {rl.max_per_episode!r}")
+    _check(isinstance(rl.held_while_gated, numbers.Integral) and not isinstance(rl.held_while_gated, bool)
+           and 0 <= rl.held_while_gated <= MAX_HELD_WHILE_GATED,
+           f"relabel.held_while_gated: must be an integer in [0, {MAX_HELD_WHILE_GATED}], got {rl.held_while_gated!r}")
+    _check(rl.held_while_gated == 0 or rl.strategy == "learned",
+           f"relabel.held_while_gated: only a learned relabeller has a gate to wait for, not {rl.strategy!r} "
+           f"(set it to 0)")
     _check(cfg.actors >= 1, f"actors: must be >= 1, got {cfg.actors}")
     _check(cfg.envs_per_actor >= 1, f"envs_per_actor: must be >= 1, got {cfg.envs_per_actor}")
     _check(cfg.frames >= 1, f"frames: must be >= 1, got {cfg.frames}")

@@ -79,6 +79,7 @@ RELABEL_ACCURACY_TOTAL = "relabel_accuracy_total"  # the same since the start of
 RELABEL_CONTRADICTING = "relabel_contradicting"  # learned relabels naming the failed goal, dropped [count]
 RELABEL_UNPARSEABLE = "relabel_unparseable"  # generated instructions the grammar cannot parse, dropped [count]
 RELABEL_GATED_OFF = "relabel_gated_off"  # wrong picks not relabelled because the generator's gate was shut [count]
+RELABEL_HELD = "relabel_held"  # failed episodes kept while the gate is shut, waiting to be relabelled [count]
 RELABEL_GATE_OPEN = "relabel_gate_open"  # whether the generator relabels yet (enough pairs and accuracy) [flag]
 RELABEL_DATASET_SIZE = "relabel_dataset_size"  # (view, instruction) pairs in the generator's dataset [pairs]
 GENERATOR_VAL_ACCURACY = "generator_val_accuracy"  # generator exact match on its validation pairs, latest [fraction]
@@ -87,7 +88,8 @@ GENERATOR_TRAIN_STEPS = "generator_train_steps"  # the generator's training upda
 GENERATOR_EVALUATIONS = "generator_evaluations"  # the generator's validation measurements [count]
 GENERATOR_LOSS = "generator_loss"  # the generator's training loss, last update [loss]
 RELABEL_KEYS = (RELABEL_STRATEGY, RELABEL_CONSIDERED, RELABELS_MADE, RELABEL_ACCURACY, RELABEL_ACCURACY_TOTAL,
-                RELABEL_CONTRADICTING, RELABEL_UNPARSEABLE, RELABEL_GATED_OFF, RELABEL_GATE_OPEN, RELABEL_DATASET_SIZE,
+                RELABEL_CONTRADICTING, RELABEL_UNPARSEABLE, RELABEL_GATED_OFF, RELABEL_HELD, RELABEL_GATE_OPEN,
+                RELABEL_DATASET_SIZE,
                 GENERATOR_VAL_ACCURACY, GENERATOR_VAL_AT_PAIRS, GENERATOR_TRAIN_STEPS, GENERATOR_EVALUATIONS,
                 GENERATOR_LOSS)
 # The relabeler service's own (cluster runs only).

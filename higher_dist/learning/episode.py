@@ -12,7 +12,8 @@ the instruction generator describes.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 
@@ -65,6 +66,23 @@ class Episode:
     def outcome_attrs(self, k: int) -> np.ndarray:
         """What outcome number `k` achieved (ground truth, as `picked`)."""
         return self.picked if k == 0 else self.later_achieved[k - 1]
+
+    def state_dict(self) -> dict[str, Any]:
+        """Its fields as plain values and arrays (how a checkpoint holds an episode)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def owning_copy(self) -> "Episode":
+        """A copy that owns its arrays: a decoded episode's arrays may be views that keep its whole
+        message alive."""
+        return replace(self, **{k: v.copy() for k, v in self.state_dict().items() if isinstance(v, np.ndarray)})
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any]) -> "Episode":
+        known = {f.name for f in fields(cls)}
+        values = {k: v for k, v in state.items() if k in known}
+        for name in ("outcome", "pick_step", "actor_id", "weights_version"):
+            values[name] = int(values[name])
+        return cls(**{**values, "relabelled": bool(values["relabelled"])})
 
     @property
     def length(self) -> int:

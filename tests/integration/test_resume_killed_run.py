@@ -24,9 +24,12 @@ pytestmark = pytest.mark.slow
 # ~1.0 again, visibly above the epsilon it had when killed. A discount of 0.99 learns the small world a
 # little later and its greedy curve swings less between the evaluations compared (at 0.95 it passed the
 # "learned" bar at 3k frames, where 32-episode evaluations still swing by 0.3).
-# 64 episodes per evaluation: at 32 a single evaluation of a policy at 60% swung below 35%.
-SETTINGS = {"exploration.warmup_frames": 200_000, "eval.every_frames": 1500, "eval.episodes": 64,
+# The greedy curve of an uninterrupted run of these settings swings between 0.41 and 0.73 from one evaluation
+# to the next (64 episodes each) while its level stays near 0.55: the policy itself moves that much between
+# evaluations, not only the sampling. So the curve is judged on means of three 128-episode evaluations.
+SETTINGS = {"exploration.warmup_frames": 200_000, "eval.every_frames": 1500, "eval.episodes": 128,
             "dqn.gamma": 0.99}
+JUDGED = 3  # evaluations averaged on each side of the kill
 
 
 def _chance() -> float:
@@ -69,10 +72,10 @@ def test_a_killed_run_resumes_as_its_checkpoint_and_its_curve_does_not_dip(tmp_p
     watch, launcher, _ = start_cluster(run_dir, tmp_path, frames=10_000_000, actors=1, **SETTINGS)
     rd = RunDir(run_dir)
     try:
-        # 1. Learned: the last two greedy evaluations clearly above chance.
-        watch.wait_for("two evaluations >= chance + 0.25",
-                       lambda r: len(ev := _evaluations(watch.records())) >= 2
-                       and min(s for _, s in ev[-2:]) >= chance + 0.25, timeout=480)
+        # 1. Learned: the mean of the last three greedy evaluations clearly above chance.
+        watch.wait_for("three evaluations averaging >= chance + 0.25",
+                       lambda r: len(ev := _evaluations(watch.records())) >= JUDGED
+                       and np.mean([s for _, s in ev[-JUDGED:]]) >= chance + 0.25, timeout=480)
         # A fresh checkpoint of both stateful roles, then SIGKILL to every process.
         marks = {role: rd.checkpoint_path(role).stat().st_mtime_ns for role in ("learner", "relabeler")}
         watch.wait_until("both roles checkpointed again",
@@ -108,20 +111,21 @@ def test_a_killed_run_resumes_as_its_checkpoint_and_its_curve_does_not_dip(tmp_p
         assert acting["epsilon_mean"] <= eps_before + 0.01, (acting["epsilon_mean"], eps_before)
         assert acting["relabel_dataset_size"] >= pairs
 
-        # 3. No dip: the first two evaluations after the resume stay near the two before the kill.
+        # 3. No dip: the first three evaluations after the resume stay near the three before the kill.
         # Only the resumed run's records: the killed run may have evaluated past the checkpoint's frames too.
-        watch.wait_for("two evaluations after the resume",
-                       lambda r: len(_evaluations(watch.records()[n:])) >= 2, timeout=300, after=n)
+        watch.wait_for("three evaluations after the resume",
+                       lambda r: len(_evaluations(watch.records()[n:])) >= JUDGED, timeout=300, after=n)
         resumed_evals = _evaluations(watch.records()[n:])
         assert all(f > counters["frames"] for f, _ in resumed_evals), (resumed_evals, counters["frames"])
-        after = [s for _, s in resumed_evals[:2]]
+        after = [s for _, s in resumed_evals[:JUDGED]]
         # Not even for a moment at the epsilon of frame 0: every record of the resumed run says so.
         resumed_eps = [r["epsilon_mean"] for r in watch.records()[n:] if r.get("epsilon_mean") is not None]
         assert resumed_eps and max(resumed_eps) <= eps_before + 0.01, (max(resumed_eps), eps_before)
-        # Means of two 64-episode evaluations (each swings by about 0.06 alone); a network or replay lost in
-        # the resume would read near chance.
-        level = float(np.mean([s for _, s in evals_before[-2:]]))
-        assert np.mean(after) >= level - 0.25 and min(after) >= chance + 0.15, (evals_before[-3:], after, chance)
+        # Means of three evaluations: the uninterrupted curve's mean of three moves by about 0.05; a network or
+        # replay lost in the resume would start again from chance.
+        level = float(np.mean([s for _, s in evals_before[-JUDGED:]]))
+        assert np.mean(after) >= level - 0.2 and np.mean(after) >= chance + 0.15, (evals_before[-JUDGED:], after,
+                                                                                   chance)
         resumed.send(signal.SIGINT)
         assert resumed.wait(60) == 0, watch.diagnostics()
     finally:

@@ -38,6 +38,9 @@ from higher_dist.world.objects import ObjectSpace
 from higher_dist.world.spec import DEFAULT_SPEC, WorldSpec
 
 RECENT_RELABELS = 1000  # window of the reported relabel accuracy
+# Held episodes relabelled per call once the gate opens: a few thousand at once would make one huge
+# message and one long pause of the relabeler; this many beside each batch clears them within seconds.
+HELD_RELEASE = 128
 
 
 def relabel_candidates(episodes: list[Episode]) -> list[Episode]:
@@ -207,20 +210,24 @@ class LearnedRelabel(RelabelStrategy):
 
     It reads `ep.frames` and the outcomes' steps only: never what was achieved or `ep.goal` (except
     `_score`, after the fact).
-    While the gate is closed nothing is relabelled; an output that does not parse to an object of
-    the language is dropped and counted as `unparseable`, one that names the episode's own (failed)
-    goal is dropped and counted as `contradicting`.
+    While the gate is closed nothing is relabelled: the newest `relabel.held_while_gated` of those
+    failed episodes are kept and relabelled once it opens (the agent then learns from the frames it
+    spent waiting for the gate too), the rest are only counted as `gated_off`. An output that does not
+    parse to an object of the language is dropped and counted as `unparseable`, one that names the
+    episode's own (failed) goal is dropped and counted as `contradicting`.
     """
 
     name = "learned"
 
     def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int | RelabelerSeeds = 0,
-                 device: str = "cpu", max_per_episode: int = RelabelConfig.max_per_episode):
+                 device: str = "cpu", max_per_episode: int = RelabelConfig.max_per_episode,
+                 held_while_gated: int = RelabelConfig.held_while_gated):
         super().__init__(seed, spec, max_per_episode)
         self.cfg = cfg
         self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
-        self.gated_off = 0  # wrong picks not relabelled because the gate was closed
+        self.gated_off = 0  # wrong picks offered while the gate was closed (the held ones among them)
+        self.held: deque[Episode] = deque(maxlen=int(held_while_gated))  # the newest of them, oldest first
         self._steps_since_eval = 0
 
     def observe(self, episodes: list[Episode]) -> None:
@@ -229,10 +236,13 @@ class LearnedRelabel(RelabelStrategy):
     def relabel(self, episodes: list[Episode]) -> list[Episode]:
         candidates = relabel_candidates(episodes)
         self.considered += len(candidates)
-        if not candidates:
-            return []
         if not self.trainer.gate_open:
             self.gated_off += len(candidates)
+            self.held.extend(ep.owning_copy() for ep in candidates)
+            return []
+        released = [self.held.popleft() for _ in range(min(HELD_RELEASE, len(self.held)))]
+        candidates = released + candidates
+        if not candidates:
             return []
         candidates = self._outcomes(candidates)
         # One reckoning per episode for all of its chosen outcomes (they are consecutive, in step order).
@@ -277,7 +287,7 @@ class LearnedRelabel(RelabelStrategy):
         out = super().metrics()
         t = self.trainer
         out.update({
-            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_GATED_OFF: self.gated_off,
+            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_GATED_OFF: self.gated_off, m.RELABEL_HELD: len(self.held),
             m.RELABEL_GATE_OPEN: t.gate_open,
             m.RELABEL_DATASET_SIZE: len(t.dataset),
             # As of the latest evaluation (None before the first), and the dataset size it was measured at.
@@ -291,7 +301,8 @@ class LearnedRelabel(RelabelStrategy):
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
         state.update({"trainer": self.trainer.state_dict(), "unparseable": self.unparseable,
-                      "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval})
+                      "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval,
+                      "held": [ep.state_dict() for ep in self.held]})
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -299,6 +310,8 @@ class LearnedRelabel(RelabelStrategy):
         self.trainer.load_state_dict(state["trainer"])
         self.unparseable, self.gated_off = int(state["unparseable"]), int(state["gated_off"])
         self._steps_since_eval = int(state["steps_since_eval"])
+        self.held.clear()
+        self.held.extend(Episode.from_state_dict(ep) for ep in state.get("held", []))
 
 
 def make_relabel_strategy(cfg: Config, seed: int | RelabelerSeeds, space: ObjectSpace | None = None) -> RelabelStrategy:
@@ -317,5 +330,6 @@ def make_relabel_strategy(cfg: Config, seed: int | RelabelerSeeds, space: Object
         return NoisyExpertRelabel(space if space is not None else ObjectSpace(cfg.world), cfg.relabel.noise_p, seed,
                                   spec, most)
     if kind == "learned":
-        return LearnedRelabel(cfg.generator, spec, seed, device=cfg.device, max_per_episode=most)
+        return LearnedRelabel(cfg.generator, spec, seed, device=cfg.device, max_per_episode=most,
+                              held_while_gated=cfg.relabel.held_while_gated)
     raise ValueError(f"relabel.strategy: unknown strategy {kind!r}; choose one of {', '.join(RELABEL_STRATEGIES)}")
