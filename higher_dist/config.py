@@ -173,8 +173,7 @@ class RelabelConfig:
     noise_p: float = 0.2  # noisy expert: each attribute swapped to another value with this probability
     # BabyAI levels record several outcomes per episode, FetchAttr one; more than this: a random choice.
     max_per_episode: int = 4  # relabelled copies of one failed episode at most, one per distinct outcome
-    # learned: the newest failed episodes kept while the generator's gate is shut, relabelled once it opens
-    held_while_gated: int = 0  # (0: those episodes are never relabelled)
+    held_while_gated: int = 0  # learned: the newest failures kept while the gate is shut, relabelled when it opens
 
 
 @dataclass(frozen=True)

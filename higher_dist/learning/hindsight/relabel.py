@@ -287,8 +287,8 @@ class LearnedRelabel(RelabelStrategy):
         out = super().metrics()
         t = self.trainer
         out.update({
-            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_GATED_OFF: self.gated_off, m.RELABEL_HELD: len(self.held),
-            m.RELABEL_GATE_OPEN: t.gate_open,
+            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_GATED_OFF: self.gated_off,
+            m.RELABEL_HELD: len(self.held), m.RELABEL_GATE_OPEN: t.gate_open,
             m.RELABEL_DATASET_SIZE: len(t.dataset),
             # As of the latest evaluation (None before the first), and the dataset size it was measured at.
             m.GENERATOR_VAL_ACCURACY: self.generator_accuracy,
