@@ -210,9 +210,9 @@ class LearnedRelabel(RelabelStrategy):
 
     It reads `ep.frames` and the outcomes' steps only: never what was achieved or `ep.goal` (except
     `_score`, after the fact).
-    While the gate is closed nothing is relabelled: the newest `relabel.held_while_gated` of those
-    failed episodes are kept and relabelled once it opens (the agent then learns from the frames it
-    spent waiting for the gate too), the rest are only counted as `gated_off`. An output that does not
+    While the gate is closed nothing is relabelled and the failures offered are counted as `gated_off`;
+    the newest `relabel.held_while_gated` of them are kept and relabelled once it opens (the agent then
+    learns from the frames it spent waiting for the gate too). An output that does not
     parse to an object of the language is dropped and counted as `unparseable`, one that names the
     episode's own (failed) goal is dropped and counted as `contradicting`.
     """
