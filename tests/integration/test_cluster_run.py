@@ -21,6 +21,7 @@ pytestmark = pytest.mark.slow
 BUDGET = 4000  # env frames: about 15-25 s of acting here, past the generator's gate and the first relabels
 RUN_TIMEOUT_S = 150.0
 ROLES = {("learner", 0), ("actor", 0), ("actor", 1), ("relabeler", 0)}
+HELD = 5000  # more failures than the run offers: none dropped while the gate is shut
 
 
 @dataclass
@@ -39,9 +40,12 @@ def finished_run(tmp_path_factory) -> FinishedRun:
     run_dir = base / "run"
     # With a moving average of the weights, so the run also shows it evaluated end to end, and the paper
     # world's bag-of-words instruction encoder, so its weights travel from the learner to every role (the
-    # other end-to-end tests run the small world's GRU).
+    # other end-to-end tests run the small world's GRU); its relabeler holds the failures it is offered while
+    # the generator's gate is shut, and relabels them once it opens (at 30 pairs, not the fast 10: a first
+    # message of 10 successes would open it before any failure was offered).
     watch, launcher, _ = start_cluster(run_dir, base, frames=BUDGET,
-                                       **{"dqn.average_tau": 0.01, "network.text": "bow"})
+                                       **{"dqn.average_tau": 0.01, "network.text": "bow",
+                                          "relabel.held_while_gated": HELD, "generator.n_min": 30})
     t0 = time.monotonic()
     try:
         # Poll while it runs: the roles table and the launcher's children give every pid to check later.
@@ -134,6 +138,19 @@ def test_relabelled_episodes_arrive(finished_run):
     assert last["relabelled_episodes"] > 0, {k: v for k, v in last.items() if k != "roles"}
     assert last["relabel_dataset_size"] and last["relabel_dataset_size"] >= 20
     assert last["replay_relabelled"] > 0
+
+
+def test_failures_offered_while_the_gate_was_shut_are_relabelled_once_it_opens(finished_run):
+    # The relabeler's last checkpoint (its counts at one moment; a record mixes its heartbeat with older
+    # stats): every failure it was offered was relabelled, dropped for a reason it counts, or is still held.
+    # A relabeler that forgot what it held while the gate was shut would come up short by those.
+    state = RunDir(finished_run.run_dir).load_checkpoint("relabeler")
+    accounted = state["relabelled"] + state["unparseable"] + state["contradicting"] + len(state["held"])
+    assert accounted == state["considered"], {k: v for k, v in state.items() if not isinstance(v, (dict, list))}
+    assert state["gated_off"] > 0, "no failure arrived before the gate opened: nothing was held"
+    assert state["trainer"]["evaluations"] > 0 and not state["held"]
+    last = finished_run.records[-1]
+    assert last["relabel_gate_open"] and last["relabel_held"] == 0
 
 
 def test_no_message_was_rejected(finished_run):
