@@ -97,10 +97,8 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
 
 
 # The generator on the paper world: learns its grammar from the first hundred pairs when it trains at a
-# higher rate with a narrower view encoder (docs/decisions.md, "A generator that learns from few pairs"),
-# and once right 97% of the time trains at a fifth of the pace ("Generator training paced by env frames").
-PAPER_WORLD_GENERATOR = {"lr": 3e-3, "conv_channels": (16, 32), "trained_accuracy": 0.97,
-                         "trained_updates_per_kframe": 2.0}
+# higher rate with a narrower view encoder (docs/decisions.md, "A generator that learns from few pairs").
+PAPER_WORLD_GENERATOR = {"lr": 3e-3, "conv_channels": (16, 32)}
 
 
 def _higher_on_the_paper_world(cfg: Config) -> Config:
@@ -131,8 +129,7 @@ def paper_profile(cfg: Config) -> Config:
     return replace(
         cfg, profile="paper", network=replace(cfg.network, text="gru"),
         generator=replace(cfg.generator, front_cell_shortcut=False, n_min=1000, min_accuracy=0.0,
-                          lr=GeneratorConfig.lr, conv_channels=GeneratorConfig.conv_channels,
-                          trained_accuracy=GeneratorConfig.trained_accuracy),
+                          lr=GeneratorConfig.lr, conv_channels=GeneratorConfig.conv_channels),
         exploration=replace(cfg.exploration, kind="linear", eps_start=1.0, eps_end=0.05,
                             decay_frames=PAPER_DECAY_FRAMES.get(cfg.preset, 100_000)),
     )
