@@ -115,3 +115,31 @@ class Episode:
                        mission=np.asarray(mission, dtype=np.int64).copy(), outcome=WRONG_PICK,
                        picked=picked, pick_step=step, relabelled=True,
                        later_achieved=later_achieved, later_step=later_step)
+
+
+def episodes_state(episodes: list[Episode]) -> dict[str, Any]:
+    """Many episodes as one array per field (their arrays end to end, with each one's length beside): a
+    checkpoint of thousands of them writes a few tensors, not thousands."""
+    state: dict[str, Any] = {"count": len(episodes)}
+    for f in fields(Episode):
+        values = [getattr(ep, f.name) for ep in episodes]
+        if values and isinstance(values[0], np.ndarray):
+            state[f.name] = np.concatenate(values)
+            state[f.name + "_lengths"] = np.array([len(v) for v in values], np.int64)
+        else:
+            state[f.name] = np.array(values)
+    return state
+
+
+def episodes_from_state(state: dict[str, Any]) -> list[Episode]:
+    count = int(state["count"])
+    if count == 0:
+        return []
+    columns: dict[str, list] = {}
+    for f in fields(Episode):
+        if f.name + "_lengths" in state:
+            ends = np.cumsum(state[f.name + "_lengths"])[:-1]
+            columns[f.name] = np.split(np.asarray(state[f.name]), ends)
+        else:
+            columns[f.name] = np.asarray(state[f.name]).tolist()
+    return [Episode.from_state_dict({name: column[i] for name, column in columns.items()}) for i in range(count)]

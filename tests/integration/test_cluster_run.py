@@ -145,10 +145,10 @@ def test_failures_offered_while_the_gate_was_shut_are_relabelled_once_it_opens(f
     # stats): every failure it was offered was relabelled, dropped for a reason it counts, or is still held.
     # A relabeler that forgot what it held while the gate was shut would come up short by those.
     state = RunDir(finished_run.run_dir).load_checkpoint("relabeler")
-    accounted = state["relabelled"] + state["unparseable"] + state["contradicting"] + len(state["held"])
+    accounted = state["relabelled"] + state["unparseable"] + state["contradicting"] + state["held"]["count"]
     assert accounted == state["considered"], {k: v for k, v in state.items() if not isinstance(v, (dict, list))}
     assert state["gated_off"] > 0, "no failure arrived before the gate opened: nothing was held"
-    assert state["trainer"]["evaluations"] > 0 and not state["held"]
+    assert state["trainer"]["evaluations"] > 0 and state["held"]["count"] == 0
     last = finished_run.records[-1]
     assert last["relabel_gate_open"] and last["relabel_held"] == 0
 

@@ -89,6 +89,23 @@ def test_held_episodes_own_their_arrays():
                 assert value.base is None, "a held array is a view of something else"
 
 
+def test_many_episodes_travel_as_one_array_per_field():
+    from higher_dist.learning.episode import episodes_from_state, episodes_state
+    offered = wrong_picks(5, "train", seed=3)
+    offered = [Episode(**{**ep.state_dict(), "frames": np.repeat(ep.frames[:1], n + 1, axis=0),
+                          "actions": np.arange(n, dtype=np.uint8), "rewards": np.zeros(n, np.float32),
+                          "weights_version": 10 * n, "actor_id": n % 2})
+               for n, ep in zip((1, 7, 3, 12, 5), offered)]
+    state = episodes_state(offered)
+    assert state["frames"].shape[0] == sum(ep.frames.shape[0] for ep in offered)  # end to end, not a list
+    back = episodes_from_state(state)
+    for a, b in zip(back, offered):
+        assert a.length == b.length and (a.weights_version, a.actor_id, a.pick_step) == (b.weights_version,
+                                                                                           b.actor_id, b.pick_step)
+        assert np.array_equal(a.frames, b.frames) and np.array_equal(a.mission, b.mission)
+    assert episodes_from_state(episodes_state([])) == []
+
+
 def test_held_episodes_survive_a_checkpoint(tmp_path):
     strategy = LearnedRelabel(GEN, seed=0, held_while_gated=50)
     offered = wrong_picks(30, "train", seed=21)

@@ -29,7 +29,7 @@ import numpy as np
 
 from higher_dist import metrics as m
 from higher_dist.config import RELABEL_STRATEGIES, Config, GeneratorConfig, RelabelConfig
-from higher_dist.learning.episode import SUCCESS, Episode
+from higher_dist.learning.episode import SUCCESS, Episode, episodes_from_state, episodes_state
 from higher_dist.learning.hindsight.generator import GeneratorTrainer
 from higher_dist.learning.hindsight.generator_data import generator_inputs
 from higher_dist.learning.seeds import RelabelerSeeds
@@ -302,7 +302,7 @@ class LearnedRelabel(RelabelStrategy):
         state = super().state_dict()
         state.update({"trainer": self.trainer.state_dict(), "unparseable": self.unparseable,
                       "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval,
-                      "held": [ep.state_dict() for ep in self.held]})
+                      "held": episodes_state(list(self.held))})
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -311,7 +311,7 @@ class LearnedRelabel(RelabelStrategy):
         self.unparseable, self.gated_off = int(state["unparseable"]), int(state["gated_off"])
         self._steps_since_eval = int(state["steps_since_eval"])
         self.held.clear()
-        self.held.extend(Episode.from_state_dict(ep) for ep in state.get("held", []))
+        self.held.extend(episodes_from_state(state["held"]) if "held" in state else [])
 
 
 def make_relabel_strategy(cfg: Config, seed: int | RelabelerSeeds, space: ObjectSpace | None = None) -> RelabelStrategy:
