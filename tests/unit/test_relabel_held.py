@@ -5,11 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_relabel import FEW_OBJECTS, GEN, check_copies, make_episode, mixed_batch, wrong_picks
+from test_relabel import GEN, check_copies, make_episode, mixed_batch, trained, wrong_picks  # noqa: F401 (a fixture)
 
 from higher_dist.config_presets import make_config
-from higher_dist.learning.episode import SUCCESS, Episode
-from higher_dist.learning.hindsight.generator_measure import make_pairs
+from higher_dist.learning.episode import Episode
 from higher_dist.learning.hindsight.relabel import HELD_RELEASE, LearnedRelabel, make_relabel_strategy
 from higher_dist.rundir import RunDir
 from higher_dist.world.language import parse
@@ -18,16 +17,9 @@ torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="module")
-def opened_generator() -> dict:
-    """The trainer state of a generator whose gate has opened (400 successful pairs, 500 updates)."""
-    strategy = LearnedRelabel(GEN, seed=0)
-    rng = np.random.default_rng(0)
-    views, missions, goals = make_pairs(FEW_OBJECTS, 400, "train", rng)
-    strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
-    for _ in range(5):
-        strategy.train(100)
-    assert strategy.trainer.gate_open
-    return strategy.trainer.state_dict()
+def opened_generator(trained) -> dict:
+    """The trainer state of a generator whose gate has opened (test_relabel's `trained`)."""
+    return trained.trainer.state_dict()
 
 
 def frames_key(ep: Episode) -> bytes:
