@@ -84,8 +84,6 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
     if world == "paper":
         cfg = replace(cfg, network=replace(cfg.network, text=PAPER_WORLD_TEXT),
                       generator=replace(cfg.generator, **PAPER_WORLD_GENERATOR))
-        if cfg.relabel.strategy == "learned":
-            cfg = replace(cfg, relabel=replace(cfg.relabel, held_while_gated=PAPER_WORLD_HELD))
     if is_babyai_world(world):
         cfg = _on_a_babyai_level(cfg)
     if profile == "paper":
@@ -101,9 +99,6 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
 # The generator on the paper world: learns its grammar from the first hundred pairs when it trains at a
 # higher rate with a narrower view encoder (docs/decisions.md, "A generator that learns from few pairs").
 PAPER_WORLD_GENERATOR = {"lr": 3e-3, "conv_channels": (16, 32)}
-# The failures of the frames before the gate opens are relabelled once it does (docs/decisions.md,
-# "Failures held while the gate is shut"): more than the paper world's first 100k frames offer.
-PAPER_WORLD_HELD = 8192
 
 
 def _higher_on_the_paper_world(cfg: Config) -> Config:
@@ -133,7 +128,6 @@ def paper_profile(cfg: Config) -> Config:
     stay options."""
     return replace(
         cfg, profile="paper", network=replace(cfg.network, text="gru"),
-        relabel=replace(cfg.relabel, held_while_gated=RelabelConfig.held_while_gated),
         generator=replace(cfg.generator, front_cell_shortcut=False, n_min=1000, min_accuracy=0.0,
                           lr=GeneratorConfig.lr, conv_channels=GeneratorConfig.conv_channels),
         exploration=replace(cfg.exploration, kind="linear", eps_start=1.0, eps_end=0.05,

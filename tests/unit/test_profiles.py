@@ -19,9 +19,7 @@ from higher_dist.rundir import RunDir
 def test_paper_profile_applies_the_papers_settings_on_top_of_a_preset(preset, decay):
     ours, paper = make_config(preset, "paper"), make_config(preset, "paper", "paper")
     assert ours.profile == "default" and paper.profile == "paper"
-    # The method stays the preset's; the paper relabels nothing of what came before its trigger.
-    assert paper.preset == preset and paper.relabel.strategy == ours.relabel.strategy
-    assert paper.relabel.held_while_gated == 0
+    assert paper.preset == preset and paper.relabel == ours.relabel  # the method stays the preset's
     e = paper.exploration
     assert (e.kind, e.eps_start, e.eps_end, e.decay_frames) == ("linear", 1.0, 0.05, decay)
     g = paper.generator
@@ -145,16 +143,3 @@ def test_the_generator_trains_as_its_world_chose_and_flags_and_the_paper_profile
         trainer = GeneratorTrainer(cfg.generator, seed=0)
         widths = [m.out_channels for m in trainer.model.encoder.modules() if isinstance(m, torch.nn.Conv2d)]
         assert widths == list(convs) and trainer.optimizer.param_groups[0]["lr"] == lr
-
-
-def test_only_higher_on_the_paper_world_holds_failures_while_its_gate_is_shut():
-    """The paper world's HIGhER relabels the failures of its first frames once its gate opens; the paper
-    profile, the other worlds (their gates open within a few thousand frames) and the other methods (no
-    gate) hold none; a flag still sets it."""
-    assert make_config("higher", "paper").relabel.held_while_gated == 8192
-    assert make_config("higher", "paper", "paper").relabel.held_while_gated == 0
-    for world in ("small", "BabyAI-PickupDist-v0"):
-        assert make_config("higher", world).relabel.held_while_gated == 0
-    for preset in ("dqn", "her", "noisy-her", "reward"):
-        assert make_config(preset, "paper").relabel.held_while_gated == 0
-    assert make_config("higher", "paper", **{"relabel.held_while_gated": 0}).relabel.held_while_gated == 0
