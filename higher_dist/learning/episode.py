@@ -67,23 +67,6 @@ class Episode:
         """What outcome number `k` achieved (ground truth, as `picked`)."""
         return self.picked if k == 0 else self.later_achieved[k - 1]
 
-    def state_dict(self) -> dict[str, Any]:
-        """Its fields as plain values and arrays (how a checkpoint holds an episode)."""
-        return {f.name: getattr(self, f.name) for f in fields(self)}
-
-    def owning_copy(self) -> "Episode":
-        """A copy that owns its arrays: a decoded episode's arrays may be views that keep its whole
-        message alive."""
-        return replace(self, **{k: v.copy() for k, v in self.state_dict().items() if isinstance(v, np.ndarray)})
-
-    @classmethod
-    def from_state_dict(cls, state: dict[str, Any]) -> "Episode":
-        known = {f.name for f in fields(cls)}
-        values = {k: v for k, v in state.items() if k in known}
-        for name in ("outcome", "pick_step", "actor_id", "weights_version"):
-            values[name] = int(values[name])
-        return cls(**{**values, "relabelled": bool(values["relabelled"])})
-
     @property
     def length(self) -> int:
         return int(self.actions.shape[0])
@@ -132,14 +115,11 @@ def episodes_state(episodes: list[Episode]) -> dict[str, Any]:
 
 
 def episodes_from_state(state: dict[str, Any]) -> list[Episode]:
-    count = int(state["count"])
-    if count == 0:
-        return []
     columns: dict[str, list] = {}
     for f in fields(Episode):
         if f.name + "_lengths" in state:
             ends = np.cumsum(state[f.name + "_lengths"])[:-1]
             columns[f.name] = np.split(np.asarray(state[f.name]), ends)
-        else:
+        else:  # plain ints and bools again
             columns[f.name] = np.asarray(state[f.name]).tolist()
-    return [Episode.from_state_dict({name: column[i] for name, column in columns.items()}) for i in range(count)]
+    return [Episode(**{name: column[i] for name, column in columns.items()}) for i in range(int(state["count"]))]

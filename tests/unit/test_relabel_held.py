@@ -2,15 +2,22 @@
 relabels once it opens."""
 from __future__ import annotations
 
+from dataclasses import fields, replace
+
 import numpy as np
 import pytest
 import torch
-from test_relabel import GEN, check_copies, make_episode, mixed_batch, trained, wrong_picks  # noqa: F401 (a fixture)
+from test_relabel import GEN, check_copies, mixed_batch, trained, wrong_picks  # noqa: F401 (a fixture)
 
 from higher_dist.config_presets import make_config
+from higher_dist.learning.acting import EpisodeCollector
 from higher_dist.learning.episode import Episode
-from higher_dist.learning.hindsight.relabel import HELD_RELEASE, LearnedRelabel, make_relabel_strategy
+from higher_dist.learning.hindsight.relabel import (HELD_RELEASE, LearnedRelabel, make_relabel_strategy,
+                                                    relabel_candidates)
 from higher_dist.rundir import RunDir
+from higher_dist.wire.codec import decode, encode
+from higher_dist.wire.episodes import pack_episodes, unpack_episodes
+from higher_dist.world.spec import WorldSpec
 from higher_dist.world.language import parse
 
 torch.set_num_threads(1)
@@ -20,6 +27,10 @@ torch.set_num_threads(1)
 def opened_generator(trained) -> dict:
     """The trainer state of a generator whose gate has opened (test_relabel's `trained`)."""
     return trained.trainer.state_dict()
+
+
+def fields_of(ep: Episode) -> dict:
+    return {f.name: getattr(ep, f.name) for f in fields(ep)}
 
 
 def frames_key(ep: Episode) -> bytes:
@@ -66,17 +77,23 @@ def test_nothing_is_held_by_default_and_an_open_gate_holds_nothing():
 
 
 def test_held_episodes_own_their_arrays():
-    # A decoded episode's arrays can be views of its whole message: a held one must not keep that alive.
-    message = np.zeros((10, 4, 7, 7, 4), np.uint8)
-    episodes = [make_episode(np.zeros((7, 7, 4), np.uint8), np.zeros(10, np.int64), 1, np.zeros(4, np.int8),
-                             np.ones(4, np.int8))
-                for _ in range(10)]
-    episodes = [Episode(**{**ep.state_dict(), "frames": message[i]}) for i, ep in enumerate(episodes)]
+    # Episodes as the relabeler receives them, decoded from a real message: one it holds must not keep that
+    # whole message alive.
+    cfg = make_config("higher", "small")
+    collector = EpisodeCollector(cfg.world, 16, cfg.network.frame_stack, seed=2)
+    rng = np.random.default_rng(2)
+    sent: list[Episode] = []
+    while len(relabel_candidates(sent)) < 10:
+        sent += collector.step(rng.integers(0, 4, size=collector.n_envs))
+    rejects: list[str] = []
+    episodes = unpack_episodes(decode(encode("episodes", *pack_episodes(sent))), WorldSpec.of(cfg.world),
+                               reject=rejects.append)
+    assert not rejects and len(episodes) == len(sent)
     strategy = LearnedRelabel(GEN, seed=0, held_while_gated=10)
     strategy.relabel(episodes)
     assert len(strategy.held) == 10
     for ep in strategy.held:
-        for value in ep.state_dict().values():
+        for value in fields_of(ep).values():
             if isinstance(value, np.ndarray):
                 assert value.base is None, "a held array is a view of something else"
 
@@ -84,7 +101,7 @@ def test_held_episodes_own_their_arrays():
 def test_many_episodes_travel_as_one_array_per_field():
     from higher_dist.learning.episode import episodes_from_state, episodes_state
     offered = wrong_picks(5, "train", seed=3)
-    offered = [Episode(**{**ep.state_dict(), "frames": np.repeat(ep.frames[:1], n + 1, axis=0),
+    offered = [replace(ep, **{"frames": np.repeat(ep.frames[:1], n + 1, axis=0),
                           "actions": np.arange(n, dtype=np.uint8), "rewards": np.zeros(n, np.float32),
                           "weights_version": 10 * n, "actor_id": n % 2})
                for n, ep in zip((1, 7, 3, 12, 5), offered)]
@@ -108,8 +125,8 @@ def test_held_episodes_survive_a_checkpoint(tmp_path):
     clone.load_state_dict(run_dir.load_checkpoint("relabeler"))
     assert len(clone.held) == len(offered)
     for a, b in zip(clone.held, offered):
-        for key, value in b.state_dict().items():
-            got = a.state_dict()[key]
+        for key, value in fields_of(b).items():
+            got = fields_of(a)[key]
             assert np.array_equal(got, value) if isinstance(value, np.ndarray) else got == value, key
     # A checkpoint from before held episodes existed loads with none held.
     old = strategy.state_dict()

@@ -238,7 +238,8 @@ class LearnedRelabel(RelabelStrategy):
         self.considered += len(candidates)
         if not self.trainer.gate_open:
             self.gated_off += len(candidates)
-            self.held.extend(ep.owning_copy() for ep in candidates)
+            # Kept as they are: the collector and the wire's unpacking give each episode its own arrays.
+            self.held.extend(candidates)
             return []
         released = [self.held.popleft() for _ in range(min(HELD_RELEASE, len(self.held)))]
         candidates = released + candidates
