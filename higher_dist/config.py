@@ -35,7 +35,7 @@ FUSIONS = ("film", "concat")
 CORES = ("stack", "gru")  # network.core
 TEXT_ENCODERS = ("gru", "bow")  # network.text
 TARGET_UPDATES = ("period", "polyak")
-DECODINGS = ("greedy", "sample")  # generator.decoding
+DECODINGS = ("greedy", "sample", "rephrase")  # generator.decoding
 RATIO_COUNTS = ("env_frames", "transitions")
 EXPLORATION_KINDS = ("apex", "linear")
 RELABEL_STRATEGIES = ("none", "expert", "noisy", "learned")
@@ -158,9 +158,9 @@ class GeneratorConfig:
     n_min: int = 1000  # gate: pairs needed before relabelling (paper: 1000)
     front_cell_shortcut: bool = True  # feed the front cell's channel embeddings, side by side, straight to the decoder
     min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
-    decoding: str = "greedy"  # a relabel's words: greedy (the likeliest) | sample (drawn, as the expert draws a phrasing)
-    temperature: float = 1.0  # decoding=sample: words drawn from softmax(logits / temperature)
-    top_p: float = 1.0  # decoding=sample: draw only among the likeliest words that hold this much probability (nucleus)
+    decoding: str = "greedy"  # a relabel's words: greedy (the likeliest) | sample (drawn, as the expert draws a phrasing) | rephrase (drawn where they name the greedy words' object)
+    temperature: float = 1.0  # decoding=sample or rephrase: words drawn from softmax(logits / temperature)
+    top_p: float = 1.0  # decoding=sample or rephrase: draw only among the likeliest words that hold this much probability (nucleus)
     updates_per_kframe: float = 10.0  # generator updates per 1000 env frames of original episodes
     trained_accuracy: float = 0.0  # > 0: from this validation exact match up, train at trained_updates_per_kframe
     trained_updates_per_kframe: float = 2.0  # the pace while the generator is at trained_accuracy or above

@@ -259,3 +259,20 @@ def test_generator_accuracy_is_unknown_before_its_first_evaluation_and_dated_aft
     strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
     m = strategy.metrics()
     assert m["generator_val_accuracy"] is not None and m["generator_val_at_pairs"] == size_then < m["relabel_dataset_size"]
+
+
+def test_rephrased_relabels_name_the_greedy_object_in_varied_words(trained, monkeypatch):
+    """generator.decoding=rephrase, through the relabel path: one failure offered many times is relabelled
+    with the object the greedy words name every time, in more than one phrasing (greedy: always one)."""
+    failure = wrong_picks(1, "train", seed=9)[0]
+    batch = [replace(failure) for _ in range(48)]
+    monkeypatch.setattr(trained, "cfg", replace(GEN, decoding="greedy"))
+    greedy = trained.relabel(batch)
+    monkeypatch.setattr(trained, "cfg", replace(GEN, decoding="rephrase"))
+    rephrased = trained.relabel(batch)
+    assert len(greedy) == len(rephrased) == len(batch)
+    check_copies(rephrased, batch)
+    assert len({c.mission.tobytes() for c in greedy}) == 1
+    assert len({c.mission.tobytes() for c in rephrased}) >= 3
+    meaning = parse(greedy[0].mission)
+    assert all(np.array_equal(parse(c.mission), meaning) for c in rephrased)

@@ -271,6 +271,18 @@ class GeneratorTrainer:
             chunks.append(out.cpu().numpy()[: len(chunk)])
         return np.concatenate(chunks).astype(np.int64)
 
+    def rephrase(self, views: np.ndarray, where: np.ndarray | None, seed: int) -> np.ndarray:
+        """The greedy instructions' meaning in drawn words: per view, a drawn instruction (`generate` with
+        `seed`) where it parses to the object the greedy one names, the greedy one where not. The draw
+        varies the phrasing as the expert's missions vary it; the greedy words keep it from naming a
+        wrong attribute the generator was unsure of."""
+        greedy = self.generate(views, where)
+        drawn = self.generate(views, where, seed=seed)
+        greedy_attrs, greedy_ok = self.language.parse_many(greedy)
+        drawn_attrs, drawn_ok = self.language.parse_many(drawn)
+        same = greedy_ok & drawn_ok & (greedy_attrs == drawn_attrs).all(axis=1)
+        return np.where(same[:, None], drawn, greedy)
+
     def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray, where: np.ndarray | None = None) -> dict[str, float]:
         """Semantic accuracy of the greedy outputs on given pairs: do they describe the object the pair's
         mission was fulfilled by (`WorldSpec.fulfilled_by`, with the pairs' start locations where known)?"""

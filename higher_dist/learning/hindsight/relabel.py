@@ -250,10 +250,14 @@ class LearnedRelabel(RelabelStrategy):
         by_episode = [list(group) for _, group in itertools.groupby(candidates, key=lambda o: id(o.episode))]
         inputs = [generator_inputs(self.spec, group[0].episode, [o.step for o in group]) for group in by_episode]
         views = np.concatenate([v for v, _ in inputs])
-        # Sampled words phrase a relabel as variously as the missions it stands beside (the expert draws
+        # Drawn words phrase a relabel as variously as the missions it stands beside (the expert draws
         # its phrasing too); greedy words say every relabel of one object the same way.
-        seed = int(self.rng.integers(2 ** 63)) if self.cfg.decoding == "sample" else None
-        tokens = self.trainer.generate(views, np.concatenate([w for _, w in inputs]), seed=seed)
+        where = np.concatenate([w for _, w in inputs])
+        if self.cfg.decoding == "rephrase":
+            tokens = self.trainer.rephrase(views, where, seed=int(self.rng.integers(2 ** 63)))
+        else:
+            seed = int(self.rng.integers(2 ** 63)) if self.cfg.decoding == "sample" else None
+            tokens = self.trainer.generate(views, where, seed=seed)
         attrs, ok = self.language.parse_many(tokens)
         self.unparseable += int((~ok).sum())
         kept = np.flatnonzero(ok)
