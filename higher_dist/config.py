@@ -22,6 +22,7 @@ WORLDS = ("paper", "small")  # our own worlds; a BabyAI level is named by its gy
 # Distinct achieved outcomes one episode records at most (world/spec.py: the first and MAX_LATER more).
 MAX_OUTCOMES = 8
 MAX_HELD_WHILE_GATED = 100_000  # relabel.held_while_gated: about 1 GB of views on the paper world
+MAX_AGREEMENT_DRAWS = 64  # generator.agreement_draws: each is one more decoding of every relabel batch
 BABYAI_PREFIX = "BabyAI-"
 
 
@@ -161,6 +162,8 @@ class GeneratorConfig:
     decoding: str = "greedy"  # a relabel's words: greedy (the likeliest) | sample (drawn, as the expert draws a phrasing) | rephrase (drawn where they name the greedy words' object)
     temperature: float = 1.0  # decoding=sample or rephrase: words drawn from softmax(logits / temperature)
     top_p: float = 1.0  # decoding=sample or rephrase: draw only among the likeliest words that hold this much probability (nucleus)
+    agreement_draws: int = 0  # instructions drawn per relabel to measure how sure the generator is of its object (0: none)
+    min_agreement: float = 0.0  # a relabel is dropped when fewer than this share of those draws name its object
     updates_per_kframe: float = 10.0  # generator updates per 1000 env frames of original episodes
     trained_accuracy: float = 0.0  # > 0: from this validation exact match up, train at trained_updates_per_kframe
     trained_updates_per_kframe: float = 2.0  # the pace while the generator is at trained_accuracy or above
@@ -365,6 +368,14 @@ def validate(cfg: Config) -> None:
     _check(0.0 < g.lr_end_fraction <= 1.0, f"generator.lr_end_fraction: must be in (0, 1], got {g.lr_end_fraction}")
     _check(g.temperature > 0, f"generator.temperature: must be > 0, got {g.temperature}")
     _check(0 < g.top_p <= 1, f"generator.top_p: must lie in (0, 1], got {g.top_p}")
+    _check(isinstance(g.agreement_draws, numbers.Integral) and not isinstance(g.agreement_draws, bool)
+           and 0 <= g.agreement_draws <= MAX_AGREEMENT_DRAWS,
+           f"generator.agreement_draws: must be an integer in [0, {MAX_AGREEMENT_DRAWS}], got {g.agreement_draws!r}")
+    _check(0 <= g.min_agreement <= 1, f"generator.min_agreement: must lie in [0, 1], got {g.min_agreement}")
+    _check(g.min_agreement == 0 or g.agreement_draws > 0,
+           "generator.min_agreement: needs generator.agreement_draws > 0 (the draws it is a share of)")
+    _check(g.agreement_draws == 0 or g.decoding != "sample",
+           "generator.agreement_draws: measures the greedy words' object; generator.decoding=sample has none")
     _check(g.max_len >= 6, f"generator.max_len: must be >= 6 to hold an instruction, got {g.max_len}")
     _check(g.capacity >= 10, f"generator.capacity: must be >= 10, got {g.capacity}")
     _check(0 <= g.trained_accuracy <= 1,

@@ -78,6 +78,7 @@ RELABEL_ACCURACY = "relabel_accuracy"  # relabels that name the picked object, l
 RELABEL_ACCURACY_TOTAL = "relabel_accuracy_total"  # the same since the start of the run [fraction]
 RELABEL_CONTRADICTING = "relabel_contradicting"  # learned relabels naming the failed goal, dropped [count]
 RELABEL_UNPARSEABLE = "relabel_unparseable"  # generated instructions the grammar cannot parse, dropped [count]
+RELABEL_UNSURE = "relabel_unsure"  # learned relabels too few of the generator's draws agreed with (generator.min_agreement), dropped [count]
 RELABEL_GATED_OFF = "relabel_gated_off"  # wrong picks offered while the generator's gate was shut (held ones: relabel_held) [count]
 RELABEL_HELD = "relabel_held"  # failed episodes kept while the gate is shut, waiting to be relabelled [count]
 RELABEL_GATE_OPEN = "relabel_gate_open"  # whether the generator relabels yet (enough pairs and accuracy) [flag]
@@ -88,7 +89,7 @@ GENERATOR_TRAIN_STEPS = "generator_train_steps"  # the generator's training upda
 GENERATOR_EVALUATIONS = "generator_evaluations"  # the generator's validation measurements [count]
 GENERATOR_LOSS = "generator_loss"  # the generator's training loss, last update [loss]
 RELABEL_KEYS = (RELABEL_STRATEGY, RELABEL_CONSIDERED, RELABELS_MADE, RELABEL_ACCURACY, RELABEL_ACCURACY_TOTAL,
-                RELABEL_CONTRADICTING, RELABEL_UNPARSEABLE, RELABEL_GATED_OFF, RELABEL_HELD, RELABEL_GATE_OPEN,
+                RELABEL_CONTRADICTING, RELABEL_UNPARSEABLE, RELABEL_UNSURE, RELABEL_GATED_OFF, RELABEL_HELD, RELABEL_GATE_OPEN,
                 RELABEL_DATASET_SIZE,
                 GENERATOR_VAL_ACCURACY, GENERATOR_VAL_AT_PAIRS, GENERATOR_TRAIN_STEPS, GENERATOR_EVALUATIONS,
                 GENERATOR_LOSS)

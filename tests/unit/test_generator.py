@@ -309,9 +309,11 @@ def test_rephrased_relabels_vary_their_words_never_their_meaning(train_steps):
     trainer.train_steps(train_steps)
     batch = np.repeat(views[:8], 64, axis=0)
     greedy = trainer.generate(batch)
-    drawn = trainer.generate(batch, seed=11)
-    rephrased = trainer.rephrase(batch, None, seed=11)
-    assert np.array_equal(rephrased, trainer.rephrase(batch, None, seed=11))  # the seed decides the draws
+    first_seed = int(np.random.default_rng(11).integers(2 ** 63, size=1)[0])
+    drawn = trainer.generate(batch, seed=first_seed)
+    rephrased, agreement = trainer.describe(batch, None, seed=11, rephrase=True)
+    assert np.array_equal(rephrased, trainer.describe(batch, None, seed=11, rephrase=True)[0])  # the seed decides
+    assert (agreement == 1.0).all()  # no draws asked for: no measure of agreement
     parse = trainer.language.parse_many
     (g_attrs, g_ok), (d_attrs, d_ok), (r_attrs, r_ok) = parse(greedy), parse(drawn), parse(rephrased)
     assert np.array_equal(r_ok, g_ok) and np.array_equal(r_attrs, g_attrs)  # the greedy meaning, always
@@ -322,3 +324,27 @@ def test_rephrased_relabels_vary_their_words_never_their_meaning(train_steps):
         assert len({row.tobytes() for row in rephrased[:64]}) >= 4
     else:
         assert (~agree).any()  # an unsure generator's draws do name other objects; those fall back
+
+
+def test_agreement_is_the_share_of_draws_naming_the_greedy_object():
+    """describe(draws=K): per view, the share of the K drawn instructions that parse which name the greedy
+    words' object, checked against draws made here with the same seeds; 0 where the greedy words do not
+    parse or no draw does."""
+    rng = np.random.default_rng(2)
+    views, missions, _ = make_pairs(FEW_OBJECTS, 300, "train", rng)
+    trainer = GeneratorTrainer(SMALL, seed=0)
+    trainer.dataset.add_many(views, missions)
+    trainer.train_steps(60)  # unsure of some attributes: draws disagree with the greedy words
+    batch = views[:64]
+    words, agreement = trainer.describe(batch, None, seed=5, draws=6)
+    greedy = trainer.generate(batch)
+    assert np.array_equal(words, greedy)  # without rephrase the words are the greedy ones
+    g_attrs, g_ok = trainer.language.parse_many(greedy)
+    agreeing, parsed = np.zeros(len(batch)), np.zeros(len(batch))
+    for draw_seed in np.random.default_rng(5).integers(2 ** 63, size=6):
+        d_attrs, d_ok = trainer.language.parse_many(trainer.generate(batch, seed=int(draw_seed)))
+        agreeing += g_ok & d_ok & (d_attrs == g_attrs).all(axis=1)
+        parsed += d_ok
+    assert np.allclose(agreement, np.where(parsed > 0, agreeing / np.maximum(parsed, 1), 0.0))
+    assert (agreement[~g_ok] == 0).all() and (parsed > 0).any()
+    assert 0 < agreement.mean() < 1  # neither all sure nor all unsure: the measure tells views apart

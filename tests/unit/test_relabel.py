@@ -276,3 +276,43 @@ def test_rephrased_relabels_name_the_greedy_object_in_varied_words(trained, monk
     assert len({c.mission.tobytes() for c in rephrased}) >= 3
     meaning = parse(greedy[0].mission)
     assert all(np.array_equal(parse(c.mission), meaning) for c in rephrased)
+
+
+def test_relabels_the_generator_is_unsure_of_are_dropped_and_counted():
+    """generator.min_agreement: a relabel whose object too few of the generator's draws name is dropped
+    and counted as unsure; every candidate is relabelled or dropped for one counted reason, and what is
+    kept is righter than what an unfiltered generator of the same weights writes."""
+    cfg = replace(GEN, min_accuracy=0.0, agreement_draws=8, min_agreement=0.75)
+    strategy = LearnedRelabel(cfg, seed=0)
+    rng = np.random.default_rng(3)
+    views, missions, goals = make_pairs(FEW_OBJECTS, 300, "train", rng)
+    strategy.observe([make_episode(v, m, SUCCESS, g, g) for v, m, g in zip(views, missions, goals)])
+    strategy.train(300)  # a generator still unsure of some attributes of held-out objects
+    wrong = wrong_picks(200, "heldout", seed=4)
+    copies = strategy.relabel(wrong)
+    m = strategy.metrics()
+    assert m["relabel_unsure"] > 0
+    assert len(copies) + m["relabel_unparseable"] + m["relabel_unsure"] + m["relabel_contradicting"] == len(wrong)
+    check_copies(copies, wrong)
+    unfiltered = LearnedRelabel(replace(cfg, agreement_draws=0, min_agreement=0.0), seed=0)
+    unfiltered.load_state_dict(strategy.state_dict())
+    unfiltered.relabel(wrong)
+    assert m["relabel_accuracy"] > unfiltered.metrics()["relabel_accuracy"]
+    restored = LearnedRelabel(cfg, seed=1)
+    restored.load_state_dict(strategy.state_dict())
+    assert restored.metrics()["relabel_unsure"] == m["relabel_unsure"]
+
+
+def test_agreement_settings_are_refused_when_they_cannot_mean_anything():
+    ok = make_config("higher", "small", **{"generator.agreement_draws": 8, "generator.min_agreement": 0.75,
+                                          "generator.decoding": "rephrase"})
+    assert make_relabel_strategy(ok, seed=0).cfg.agreement_draws == 8
+    for bad in ({"generator.agreement_draws": -1}, {"generator.agreement_draws": 65},
+                {"generator.agreement_draws": 2.5}, {"generator.agreement_draws": True},
+                {"generator.min_agreement": 0.5},  # a share of no draws
+                {"generator.agreement_draws": 8, "generator.min_agreement": 1.5},
+                {"generator.agreement_draws": 8, "generator.decoding": "sample"}):
+        field = "generator.min_agreement" if set(bad) == {"generator.min_agreement"} or bad.get(
+            "generator.min_agreement", 0) > 1 else "generator.agreement_draws"
+        with pytest.raises(ValueError, match=field):
+            make_config("higher", "small", **bad)

@@ -271,17 +271,36 @@ class GeneratorTrainer:
             chunks.append(out.cpu().numpy()[: len(chunk)])
         return np.concatenate(chunks).astype(np.int64)
 
-    def rephrase(self, views: np.ndarray, where: np.ndarray | None, seed: int) -> np.ndarray:
-        """The greedy instructions' meaning in drawn words: per view, a drawn instruction (`generate` with
-        `seed`) where it parses to the object the greedy one names, the greedy one where not. The draw
-        varies the phrasing as the expert's missions vary it; the greedy words keep it from naming a
-        wrong attribute the generator was unsure of."""
+    def describe(self, views: np.ndarray, where: np.ndarray | None, seed: int, rephrase: bool = False,
+                 draws: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """The relabel instructions for (N, V, V, 4) views: the greedy words' meaning, and how sure the
+        generator is of it. Returns (instructions (N, MISSION_LEN), agreement (N,)): the share of `draws`
+        instructions drawn from the generator (`generate` with seeds from `seed`) that name the object the
+        greedy one names, among the draws that parse (0 where none does), 1.0 everywhere when `draws` is
+        0: a draw that names no object says the generator's grammar is unsure, not which object it
+        sees. Greedy decoding picks each word alone, so its
+        share says what the word-by-word choice hides: how much of the generator's probability, summed
+        over every phrasing, lies on that object.
+        `rephrase`: a view's instruction is its first drawn one that names the greedy object (one draw
+        is made when `draws` is 0), its greedy one where none does: phrased as variously as the
+        expert's missions, never naming an attribute the generator was unsure of."""
         greedy = self.generate(views, where)
-        drawn = self.generate(views, where, seed=seed)
-        greedy_attrs, greedy_ok = self.language.parse_many(greedy)
-        drawn_attrs, drawn_ok = self.language.parse_many(drawn)
-        same = greedy_ok & drawn_ok & (greedy_attrs == drawn_attrs).all(axis=1)
-        return np.where(same[:, None], drawn, greedy)
+        attrs, ok = self.language.parse_many(greedy)
+        words, phrased = greedy.copy(), np.zeros(len(greedy), bool)
+        agreeing, parsed = np.zeros(len(greedy)), np.zeros(len(greedy))
+        seeds = np.random.default_rng(seed).integers(2 ** 63, size=max(draws, int(rephrase)))
+        for draw_seed in seeds:
+            drawn = self.generate(views, where, seed=int(draw_seed))
+            drawn_attrs, drawn_ok = self.language.parse_many(drawn)
+            same = ok & drawn_ok & (drawn_attrs == attrs).all(axis=1)
+            agreeing += same
+            parsed += drawn_ok
+            if rephrase:
+                words[same & ~phrased] = drawn[same & ~phrased]
+                phrased |= same
+        if not draws:
+            return words, np.ones(len(greedy))
+        return words, np.divide(agreeing, parsed, out=np.zeros(len(greedy)), where=parsed > 0)
 
     def evaluate_pairs(self, views: np.ndarray, tokens: np.ndarray, where: np.ndarray | None = None) -> dict[str, float]:
         """Semantic accuracy of the greedy outputs on given pairs: do they describe the object the pair's

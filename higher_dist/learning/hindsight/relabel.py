@@ -213,8 +213,10 @@ class LearnedRelabel(RelabelStrategy):
     While the gate is closed nothing is relabelled and the failures offered are counted as `gated_off`;
     the newest `relabel.held_while_gated` of them are kept and relabelled once it opens (the agent then
     learns from the frames it spent waiting for the gate too). An output that does not
-    parse to an object of the language is dropped and counted as `unparseable`, one that names the
-    episode's own (failed) goal is dropped and counted as `contradicting`.
+    parse to an object of the language is dropped and counted as `unparseable`, one whose object fewer
+    than `generator.min_agreement` of `generator.agreement_draws` drawn instructions name is dropped and
+    counted as `unsure`, one that names the episode's own (failed) goal is dropped and counted as
+    `contradicting`.
     """
 
     name = "learned"
@@ -226,6 +228,7 @@ class LearnedRelabel(RelabelStrategy):
         self.cfg = cfg
         self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
+        self.unsure = 0  # parsed relabels dropped: too few of the generator's draws named their object
         self.gated_off = 0  # wrong picks offered while the gate was closed (the held ones among them)
         self.held: deque[Episode] = deque(maxlen=int(held_while_gated))  # the newest of them, oldest first
         self._steps_since_eval = 0
@@ -253,14 +256,17 @@ class LearnedRelabel(RelabelStrategy):
         # Drawn words phrase a relabel as variously as the missions it stands beside (the expert draws
         # its phrasing too); greedy words say every relabel of one object the same way.
         where = np.concatenate([w for _, w in inputs])
-        if self.cfg.decoding == "rephrase":
-            tokens = self.trainer.rephrase(views, where, seed=int(self.rng.integers(2 ** 63)))
+        seed = int(self.rng.integers(2 ** 63))
+        if self.cfg.decoding == "sample":
+            tokens, agreement = self.trainer.generate(views, where, seed=seed), np.ones(len(views))
         else:
-            seed = int(self.rng.integers(2 ** 63)) if self.cfg.decoding == "sample" else None
-            tokens = self.trainer.generate(views, where, seed=seed)
+            tokens, agreement = self.trainer.describe(views, where, seed, rephrase=self.cfg.decoding == "rephrase",
+                                                      draws=self.cfg.agreement_draws)
         attrs, ok = self.language.parse_many(tokens)
+        unsure = ok & (agreement < self.cfg.min_agreement)
         self.unparseable += int((~ok).sum())
-        kept = np.flatnonzero(ok)
+        self.unsure += int(unsure.sum())
+        kept = np.flatnonzero(ok & ~unsure)
         kept = kept[self._not_contradicting([candidates[i] for i in kept], attrs[kept])]
         copies = self._copies([candidates[i] for i in kept], tokens[kept])
         self._score([candidates[i] for i in kept], attrs[kept])
@@ -292,7 +298,7 @@ class LearnedRelabel(RelabelStrategy):
         out = super().metrics()
         t = self.trainer
         out.update({
-            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_GATED_OFF: self.gated_off,
+            m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_UNSURE: self.unsure, m.RELABEL_GATED_OFF: self.gated_off,
             m.RELABEL_HELD: len(self.held), m.RELABEL_GATE_OPEN: t.gate_open,
             m.RELABEL_DATASET_SIZE: len(t.dataset),
             # As of the latest evaluation (None before the first), and the dataset size it was measured at.
@@ -306,7 +312,7 @@ class LearnedRelabel(RelabelStrategy):
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
         state.update({"trainer": self.trainer.state_dict(), "unparseable": self.unparseable,
-                      "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval,
+                      "unsure": self.unsure, "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval,
                       "held": episodes_state(list(self.held))})
         return state
 
@@ -314,6 +320,7 @@ class LearnedRelabel(RelabelStrategy):
         super().load_state_dict(state)
         self.trainer.load_state_dict(state["trainer"])
         self.unparseable, self.gated_off = int(state["unparseable"]), int(state["gated_off"])
+        self.unsure = int(state.get("unsure", 0))
         self._steps_since_eval = int(state["steps_since_eval"])
         self.held.clear()
         self.held.extend(episodes_from_state(state["held"]) if "held" in state else [])
