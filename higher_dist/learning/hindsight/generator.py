@@ -273,17 +273,16 @@ class GeneratorTrainer:
 
     def describe(self, views: np.ndarray, where: np.ndarray | None, seed: int, rephrase: bool = False,
                  draws: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """The relabel instructions for (N, V, V, 4) views: the greedy words' meaning, and how sure the
-        generator is of it. Returns (instructions (N, MISSION_LEN), agreement (N,)): the share of `draws`
-        instructions drawn from the generator (`generate` with seeds from `seed`) that name the object the
-        greedy one names, among the draws that parse (0 where none does), 1.0 everywhere when `draws` is
-        0: a draw that names no object says the generator's grammar is unsure, not which object it
-        sees. Greedy decoding picks each word alone, so its
-        share says what the word-by-word choice hides: how much of the generator's probability, summed
-        over every phrasing, lies on that object.
-        `rephrase`: a view's instruction is its first drawn one that names the greedy object (one draw
-        is made when `draws` is 0), its greedy one where none does: phrased as variously as the
-        expert's missions, never naming an attribute the generator was unsure of."""
+        """Relabel instructions for (N, V, V, 4) views, and how sure the generator is of what they name.
+
+        Returns (instructions (N, MISSION_LEN), agreement (N,)). The instructions name the object of the
+        greedy words. `agreement` is the share of `draws` instructions drawn from the generator (seeds
+        from `seed`) that name that object, among the draws that parse; 0 where none parses, 1.0
+        everywhere when `draws` is 0. Greedy decoding picks each word alone; the share says how much of
+        the generator's probability, summed over every phrasing, lies on its object. A draw that names
+        no object is left out of the share: it says the generator's grammar is unsure, not what it sees.
+        `rephrase`: each instruction is the first draw that names the greedy object (one draw is made
+        when `draws` is 0), the greedy words where none does."""
         greedy = self.generate(views, where)
         attrs, ok = self.language.parse_many(greedy)
         words, phrased = greedy.copy(), np.zeros(len(greedy), bool)

@@ -256,7 +256,9 @@ class LearnedRelabel(RelabelStrategy):
         # Drawn words phrase a relabel as variously as the missions it stands beside (the expert draws
         # its phrasing too); greedy words say every relabel of one object the same way.
         where = np.concatenate([w for _, w in inputs])
-        seed = int(self.rng.integers(2 ** 63))
+        # Greedy words alone draw nothing: the draws stream stays where it was for the other consumers.
+        drawing = self.cfg.decoding != "greedy" or self.cfg.agreement_draws > 0
+        seed = int(self.rng.integers(2 ** 63)) if drawing else 0
         if self.cfg.decoding == "sample":
             tokens, agreement = self.trainer.generate(views, where, seed=seed), np.ones(len(views))
         else:
