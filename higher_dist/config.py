@@ -7,6 +7,7 @@ from the learner's. `validate` refuses inconsistent values with a message that n
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import numbers
 from dataclasses import dataclass, field, fields, replace
@@ -22,7 +23,7 @@ WORLDS = ("paper", "small")  # our own worlds; a BabyAI level is named by its gy
 # Distinct achieved outcomes one episode records at most (world/spec.py: the first and MAX_LATER more).
 MAX_OUTCOMES = 8
 MAX_HELD_WHILE_GATED = 100_000  # relabel.held_while_gated: about 1 GB of views on the paper world
-MAX_AGREEMENT_DRAWS = 64  # generator.agreement_draws: each is one more decoding of every relabel batch
+MAX_AGREEMENT_DRAWS = 64  # generator.agreement_draws: each is one more decoding of a relabel batch
 BABYAI_PREFIX = "BabyAI-"
 
 
@@ -277,15 +278,13 @@ def _build(cls: Any, data: dict[str, Any], prefix: str) -> Any:
     return cls(**kwargs)
 
 
-def _get_path(obj: Any, path: str) -> Any:
-    for name in path.split("."):
-        obj = getattr(obj, name)
-    return obj
-
-
 def _check(ok: bool, message: str) -> None:
     if not ok:
         raise ConfigError(message)
+
+
+def _is_int(value: Any) -> bool:  # an override may hand over any value; a bool is not an integer here
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 def validate_world(w: WorldConfig) -> None:
@@ -294,15 +293,14 @@ def validate_world(w: WorldConfig) -> None:
     if not isinstance(w, WorldConfig):
         raise ConfigError(f"world: expected a WorldConfig, got {type(w).__name__}")
     if is_babyai_world(w.name):  # the level itself is checked against minigrid when it is built
-        _check(isinstance(w.max_steps, numbers.Integral) and not isinstance(w.max_steps, bool) and w.max_steps >= 0,
+        _check(_is_int(w.max_steps) and w.max_steps >= 0,
                f"world.max_steps: must be an integer >= 0 (0: the level's own), got {w.max_steps!r}")
         _check(w.view_size == 7, f"world.view_size: BabyAI levels show a 7x7 view, got {w.view_size!r}")
         _check(not w.reward_shaping, "world.reward_shaping: not defined on BabyAI levels (the level gives the reward)")
         return
     for name in ("room_size", "n_objects", "max_steps", "view_size", "heldout_count", "split_seed"):
         value = getattr(w, name)
-        _check(isinstance(value, numbers.Integral) and not isinstance(value, bool),
-               f"world.{name}: expected an integer, got {value!r}")
+        _check(_is_int(value), f"world.{name}: expected an integer, got {value!r}")
     _check(w.room_size >= 2, f"world.room_size: must be >= 2, got {w.room_size}")
     _check(w.n_objects >= 1, f"world.n_objects: must be >= 1, got {w.n_objects}")
     # One cell is the agent's, the others may hold objects.
@@ -326,15 +324,14 @@ def validate_world(w: WorldConfig) -> None:
 def validate(cfg: Config) -> None:
     """Refuse a config that cannot work, naming the field."""
     for path, allowed in CHOICES.items():
-        value = _get_path(cfg, path)
+        value = functools.reduce(getattr, path.split("."), cfg)
         _check(value in allowed, f"{path}: must be one of {', '.join(allowed)}, got {value!r}")
     validate_world(cfg.world)
     w = cfg.world
     n = cfg.network
     _check(n.frame_stack >= 1, f"network.frame_stack: must be >= 1, got {n.frame_stack}")
     _check(not n.recurrent or n.frame_stack == 1,
-           f"network.frame_stack: network.core=gru reads one view per step, set network.frame_stack=1 "
-           f"(got {n.frame_stack})")
+           f"network.frame_stack: network.core=gru reads one view per step, set it to 1 (got {n.frame_stack})")
     _check(n.head_init_scale > 0, f"network.head_init_scale: must be > 0, got {n.head_init_scale}")
     _check(len(n.conv_channels) >= 1, "network.conv_channels: needs at least one layer")
     _check(n.film_blocks >= 0, f"network.film_blocks: must be >= 0 (0: FiLM on the last conv), got {n.film_blocks}")
@@ -368,14 +365,11 @@ def validate(cfg: Config) -> None:
     _check(0.0 < g.lr_end_fraction <= 1.0, f"generator.lr_end_fraction: must be in (0, 1], got {g.lr_end_fraction}")
     _check(g.temperature > 0, f"generator.temperature: must be > 0, got {g.temperature}")
     _check(0 < g.top_p <= 1, f"generator.top_p: must lie in (0, 1], got {g.top_p}")
-    _check(isinstance(g.agreement_draws, numbers.Integral) and not isinstance(g.agreement_draws, bool)
-           and 0 <= g.agreement_draws <= MAX_AGREEMENT_DRAWS,
+    _check(_is_int(g.agreement_draws) and 0 <= g.agreement_draws <= MAX_AGREEMENT_DRAWS,
            f"generator.agreement_draws: must be an integer in [0, {MAX_AGREEMENT_DRAWS}], got {g.agreement_draws!r}")
     _check(0 <= g.min_agreement <= 1, f"generator.min_agreement: must lie in [0, 1], got {g.min_agreement}")
-    _check(g.min_agreement == 0 or g.agreement_draws > 0,
-           "generator.min_agreement: needs generator.agreement_draws > 0 (the draws it is a share of)")
-    _check(g.agreement_draws == 0 or g.decoding != "sample",
-           "generator.agreement_draws: measures the greedy words' object; generator.decoding=sample has none")
+    _check(g.min_agreement == 0 or g.agreement_draws > 0, "generator.min_agreement: needs generator.agreement_draws > 0")
+    _check(g.agreement_draws == 0 or g.decoding != "sample", "generator.agreement_draws: not with generator.decoding=sample")
     _check(g.max_len >= 6, f"generator.max_len: must be >= 6 to hold an instruction, got {g.max_len}")
     _check(g.capacity >= 10, f"generator.capacity: must be >= 10, got {g.capacity}")
     _check(0 <= g.trained_accuracy <= 1,
@@ -386,15 +380,12 @@ def validate(cfg: Config) -> None:
     _check(g.eval_every_updates >= 1, f"generator.eval_every_updates: must be >= 1, got {g.eval_every_updates}")
     rl = cfg.relabel
     _check(0 <= rl.noise_p <= 1, f"relabel.noise_p: must be in [0, 1], got {rl.noise_p}")
-    _check(isinstance(rl.max_per_episode, numbers.Integral) and not isinstance(rl.max_per_episode, bool)
-           and 1 <= rl.max_per_episode <= MAX_OUTCOMES,
+    _check(_is_int(rl.max_per_episode) and 1 <= rl.max_per_episode <= MAX_OUTCOMES,
            f"relabel.max_per_episode: must be an integer in [1, {MAX_OUTCOMES}], got {rl.max_per_episode!r}")
-    _check(isinstance(rl.held_while_gated, numbers.Integral) and not isinstance(rl.held_while_gated, bool)
-           and 0 <= rl.held_while_gated <= MAX_HELD_WHILE_GATED,
+    _check(_is_int(rl.held_while_gated) and 0 <= rl.held_while_gated <= MAX_HELD_WHILE_GATED,
            f"relabel.held_while_gated: must be an integer in [0, {MAX_HELD_WHILE_GATED}], got {rl.held_while_gated!r}")
     _check(rl.held_while_gated == 0 or rl.strategy == "learned",
-           f"relabel.held_while_gated: only a learned relabeller has a gate to wait for, not {rl.strategy!r} "
-           f"(set it to 0)")
+           f"relabel.held_while_gated: only a learned relabeller has a gate to wait for, not {rl.strategy!r}")
     _check(cfg.actors >= 1, f"actors: must be >= 1, got {cfg.actors}")
     _check(cfg.envs_per_actor >= 1, f"envs_per_actor: must be >= 1, got {cfg.envs_per_actor}")
     _check(cfg.frames >= 1, f"frames: must be >= 1, got {cfg.frames}")
