@@ -284,6 +284,8 @@ class GeneratorTrainer:
         `rephrase`: each instruction is the first draw that names the greedy object (one draw is made
         when `draws` is 0), the greedy words where none does."""
         greedy = self.generate(views, where)
+        if not draws and not rephrase:  # the default path: nothing to draw, nothing to parse here
+            return greedy, np.ones(len(greedy))
         attrs, ok = self.language.parse_many(greedy)
         words, phrased = greedy.copy(), np.zeros(len(greedy), bool)
         agreeing, parsed = np.zeros(len(greedy)), np.zeros(len(greedy))
@@ -295,7 +297,8 @@ class GeneratorTrainer:
             agreeing += same
             parsed += drawn_ok
             if rephrase:
-                words[same & ~phrased] = drawn[same & ~phrased]
+                first = same & ~phrased
+                words[first] = drawn[first]
                 phrased |= same
         if not draws:
             return words, np.ones(len(greedy))
