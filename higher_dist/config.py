@@ -41,11 +41,11 @@ DECODINGS = ("greedy", "sample", "rephrase")  # generator.decoding
 RATIO_COUNTS = ("env_frames", "transitions")
 EXPLORATION_KINDS = ("apex", "linear")
 RELABEL_STRATEGIES = ("none", "expert", "noisy", "learned")
+LEARNED_WORDS = ("generator", "expert")  # relabel.words
 # The fields that take one of a few words, by dotted path: `validate` and docs/configuration.md read this.
 CHOICES: dict[str, tuple[str, ...]] = {
     "preset": PRESETS, "profile": PROFILES, "network.fusion": FUSIONS, "network.core": CORES,
-    "network.text": TEXT_ENCODERS,
-    "dqn.target_update": TARGET_UPDATES,
+    "network.text": TEXT_ENCODERS, "dqn.target_update": TARGET_UPDATES, "relabel.words": LEARNED_WORDS,
     "replay.ratio_counts": RATIO_COUNTS, "exploration.kind": EXPLORATION_KINDS,
     "relabel.strategy": RELABEL_STRATEGIES, "generator.decoding": DECODINGS,
 }
@@ -168,6 +168,7 @@ class GeneratorConfig:
     updates_per_kframe: float = 10.0  # generator updates per 1000 env frames of original episodes
     trained_accuracy: float = 0.0  # > 0: from this validation exact match up, train at trained_updates_per_kframe
     trained_updates_per_kframe: float = 2.0  # the pace while the generator is at trained_accuracy or above
+    gated_updates_per_kframe: float = 0.0  # > 0: the pace while the gate is shut (0: updates_per_kframe)
     eval_every_updates: int = 200  # validation exact match (the gate's input) every this many updates
 
 
@@ -178,6 +179,7 @@ class RelabelConfig:
     # BabyAI levels record several outcomes per episode, FetchAttr one; more than this: a random choice.
     max_per_episode: int = 4  # relabelled copies of one failed episode at most, one per distinct outcome
     held_while_gated: int = 0  # learned: the newest failures kept while the gate is shut, relabelled when it opens
+    words: str = "generator"  # learned: whose words a relabel carries once the gate is open (expert: an ablation)
 
 
 @dataclass(frozen=True)
@@ -327,8 +329,7 @@ def validate(cfg: Config) -> None:
         value = functools.reduce(getattr, path.split("."), cfg)
         _check(value in allowed, f"{path}: must be one of {', '.join(allowed)}, got {value!r}")
     validate_world(cfg.world)
-    w = cfg.world
-    n = cfg.network
+    w, n = cfg.world, cfg.network
     _check(n.frame_stack >= 1, f"network.frame_stack: must be >= 1, got {n.frame_stack}")
     _check(not n.recurrent or n.frame_stack == 1,
            f"network.frame_stack: network.core=gru reads one view per step, set it to 1 (got {n.frame_stack})")
@@ -360,8 +361,7 @@ def validate(cfg: Config) -> None:
     g = cfg.generator
     _check(0 < g.val_fraction < 1, f"generator.val_fraction: must be in (0, 1), got {g.val_fraction}")
     _check(0 <= g.min_accuracy <= 1, f"generator.min_accuracy: must be in [0, 1], got {g.min_accuracy}")
-    _check(g.lr_decay_updates >= 0,
-           f"generator.lr_decay_updates: must be >= 0 (0: constant lr), got {g.lr_decay_updates}")
+    _check(g.lr_decay_updates >= 0, f"generator.lr_decay_updates: must be >= 0 (0: constant lr), got {g.lr_decay_updates}")
     _check(0.0 < g.lr_end_fraction <= 1.0, f"generator.lr_end_fraction: must be in (0, 1], got {g.lr_end_fraction}")
     _check(g.temperature > 0, f"generator.temperature: must be > 0, got {g.temperature}")
     _check(0 < g.top_p <= 1, f"generator.top_p: must lie in (0, 1], got {g.top_p}")
@@ -374,9 +374,8 @@ def validate(cfg: Config) -> None:
     _check(g.capacity >= 10, f"generator.capacity: must be >= 10, got {g.capacity}")
     _check(0 <= g.trained_accuracy <= 1,
            f"generator.trained_accuracy: must be in [0, 1] (0: off), got {g.trained_accuracy}")
-    _check(g.trained_updates_per_kframe >= 0,
-           f"generator.trained_updates_per_kframe: must be >= 0, got {g.trained_updates_per_kframe}")
-    _check(g.updates_per_kframe >= 0, f"generator.updates_per_kframe: must be >= 0, got {g.updates_per_kframe}")
+    for pace in ("updates_per_kframe", "trained_updates_per_kframe", "gated_updates_per_kframe"):
+        _check(getattr(g, pace) >= 0, f"generator.{pace}: must be >= 0, got {getattr(g, pace)}")
     _check(g.eval_every_updates >= 1, f"generator.eval_every_updates: must be >= 1, got {g.eval_every_updates}")
     rl = cfg.relabel
     _check(0 <= rl.noise_p <= 1, f"relabel.noise_p: must be in [0, 1], got {rl.noise_p}")
@@ -384,8 +383,9 @@ def validate(cfg: Config) -> None:
            f"relabel.max_per_episode: must be an integer in [1, {MAX_OUTCOMES}], got {rl.max_per_episode!r}")
     _check(_is_int(rl.held_while_gated) and 0 <= rl.held_while_gated <= MAX_HELD_WHILE_GATED,
            f"relabel.held_while_gated: must be an integer in [0, {MAX_HELD_WHILE_GATED}], got {rl.held_while_gated!r}")
-    _check(rl.held_while_gated == 0 or rl.strategy == "learned",
-           f"relabel.held_while_gated: only a learned relabeller has a gate to wait for, not {rl.strategy!r}")
+    for name, off in (("held_while_gated", 0), ("words", "generator")):
+        _check(getattr(rl, name) == off or rl.strategy == "learned",
+               f"relabel.{name}: only a learned relabeller has a gate to wait for, not {rl.strategy!r}")
     _check(cfg.actors >= 1, f"actors: must be >= 1, got {cfg.actors}")
     _check(cfg.envs_per_actor >= 1, f"envs_per_actor: must be >= 1, got {cfg.envs_per_actor}")
     _check(cfg.frames >= 1, f"frames: must be >= 1, got {cfg.frames}")

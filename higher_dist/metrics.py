@@ -96,7 +96,7 @@ RELABEL_KEYS = (RELABEL_STRATEGY, RELABEL_CONSIDERED, RELABELS_MADE, RELABEL_ACC
 # The relabeler service's own (cluster runs only).
 RELABELS_PER_S = "relabels_per_s"  # relabelled copies made per second [1/s]
 GENERATOR_UPDATES_OWED = "generator_updates_owed"  # generator updates the relabeler is behind its pace; past a few slices it stops reading episodes [updates]
-GENERATOR_PACE = "generator_pace"  # generator updates per 1000 env frames the relabeler trains at now (generator.trained_accuracy) [updates/kframe]
+GENERATOR_PACE = "generator_pace"  # generator updates per 1000 env frames the relabeler trains at now (generator.trained_accuracy, gated_updates_per_kframe) [updates/kframe]
 # What the record takes from the relabeler's stats (None until the relabeler first reports).
 RELABELER_KEYS = RELABEL_KEYS + (RELABELS_PER_S, GENERATOR_UPDATES_OWED, GENERATOR_PACE)
 

@@ -41,53 +41,71 @@ class GeneratorPace:
     and train what it says is owed, so the generator gets the same training per frame whatever the
     machine's speed. Updates that cannot run yet (too few pairs for a batch) are forgiven, not banked.
 
-    With `trained_accuracy` > 0, frames seen while the generator's validation exact match is at or above
-    it earn `trained_updates_per_kframe` instead: early on the generator learns from a few pairs many
-    times over and needs every update, later it is right and the relabeler's core is better spent on the
-    rest of the run. The pace follows the latest measurement both ways (`follow`).
+    Each frame earns the pace of the state the generator was in when it came (`follow` sets it from the
+    latest measurement and the gate, both ways):
+    - gate shut, with `gated_updates_per_kframe` > 0: that pace. The relabeler has nothing to relabel
+      then, and the gate opens at the first measurement after enough updates on enough pairs;
+    - `trained_accuracy` > 0 and the validation exact match at or above it: `trained_updates_per_kframe`.
+      Early on the generator learns from a few pairs many times over and needs every update, later it
+      is right and the relabeler's core is better spent on the rest of the run;
+    - otherwise `updates_per_kframe`.
     """
 
     def __init__(self, updates_per_kframe: float, trained_accuracy: float = 0.0,
-                 trained_updates_per_kframe: float | None = None):
+                 trained_updates_per_kframe: float | None = None, gated_updates_per_kframe: float = 0.0):
         self.rate = float(updates_per_kframe) / 1000.0
         trained = updates_per_kframe if trained_updates_per_kframe is None else trained_updates_per_kframe
         self.trained_rate = float(trained) / 1000.0
         self.trained_accuracy = float(trained_accuracy)
+        self.gated_rate = float(gated_updates_per_kframe) / 1000.0
         self.trained = False  # the generator's latest measurement is at trained_accuracy or above
+        self.gated = self.gated_rate > 0  # the gate is shut (it starts shut) and has its own pace
         self.frames = 0
-        self.frames_trained = 0  # of `frames`, those seen while trained
+        self.frames_trained = 0  # of `frames`, those seen while trained (and the gate open)
+        self.frames_gated = 0  # of `frames`, those seen while the gate was shut, at the gated pace
         self.settled = 0  # updates done or forgiven
+
+    @property
+    def follows(self) -> bool:
+        """Whether the pace depends on the generator's state at all."""
+        return self.trained_accuracy > 0 or self.gated_rate > 0
 
     def add_frames(self, frames: int) -> None:
         self.frames += int(frames)
-        if self.trained:
+        if self.gated:
+            self.frames_gated += int(frames)
+        elif self.trained:
             self.frames_trained += int(frames)
 
-    def follow(self, accuracy: float | None) -> None:
-        """The generator's latest validation exact match (None: not measured yet) sets the pace of the
-        frames to come."""
+    def follow(self, accuracy: float | None, gate_open: bool | None = None) -> None:
+        """The generator's latest validation exact match (None: not measured yet) and whether its gate is
+        open (None: it has none) set the pace of the frames to come."""
         self.trained = self.trained_accuracy > 0 and accuracy is not None and accuracy >= self.trained_accuracy
+        self.gated = self.gated_rate > 0 and gate_open is False
 
     @property
     def owed(self) -> int:
-        earned = (self.frames - self.frames_trained) * self.rate + self.frames_trained * self.trained_rate
+        plain = self.frames - self.frames_trained - self.frames_gated
+        earned = plain * self.rate + self.frames_trained * self.trained_rate + self.frames_gated * self.gated_rate
         return max(0, int(earned) - self.settled)
 
     @property
     def updates_per_kframe(self) -> float:
         """The pace the frames to come earn."""
-        return 1000.0 * (self.trained_rate if self.trained else self.rate)
+        return 1000.0 * (self.gated_rate if self.gated else self.trained_rate if self.trained else self.rate)
 
     def settle(self, updates: int) -> None:
         self.settled += int(updates)
 
     def state_dict(self) -> dict:
         return {"frames": self.frames, "settled": self.settled, "frames_trained": self.frames_trained,
-                "trained": self.trained}
+                "trained": self.trained, "frames_gated": self.frames_gated, "gated": self.gated}
 
     def load_state_dict(self, state: dict) -> None:
         self.frames, self.settled = int(state["frames"]), int(state["settled"])
         self.frames_trained, self.trained = int(state.get("frames_trained", 0)), bool(state.get("trained", False))
+        self.frames_gated = int(state.get("frames_gated", 0))
+        self.gated = bool(state.get("gated", self.gated_rate > 0 and self.frames_gated == self.frames))
 
 
 def train_generator(strategy: RelabelStrategy, pace: GeneratorPace, max_updates: int | None = None) -> int:
@@ -98,8 +116,8 @@ def train_generator(strategy: RelabelStrategy, pace: GeneratorPace, max_updates:
     ran = strategy.train(owed)
     # An empty result means the strategy could not train yet (no generator, or too few pairs).
     pace.settle(owed)
-    if pace.trained_accuracy > 0:  # only a paced generator is asked for its accuracy
-        pace.follow(strategy.generator_accuracy)
+    if pace.follows:  # only a pace that depends on it asks for the generator's state
+        pace.follow(strategy.generator_accuracy, strategy.gate_open)
     return owed if ran else 0
 
 
@@ -120,7 +138,8 @@ class AgentBuilder:
 
     def generator_pace(self) -> GeneratorPace:
         g = self.cfg.generator
-        return GeneratorPace(g.updates_per_kframe, g.trained_accuracy, g.trained_updates_per_kframe)
+        return GeneratorPace(g.updates_per_kframe, g.trained_accuracy, g.trained_updates_per_kframe,
+                             g.gated_updates_per_kframe)
 
     def collector(self, actor: int) -> EpisodeCollector:
         n_envs = self.cfg.envs_per_actor

@@ -115,6 +115,7 @@ def test_a_trained_generator_earns_the_trained_pace_until_its_accuracy_falls_bac
 
     class Measured:
         generator_accuracy = None
+        gate_open = None
 
         def train(self, n):
             return {"loss": 1.0}
@@ -141,6 +142,47 @@ def test_a_trained_generator_earns_the_trained_pace_until_its_accuracy_falls_bac
     assert not off.trained and off.owed == 10
 
 
+def test_a_shut_gate_earns_the_gated_pace_and_its_frames_keep_it_after_the_gate_opens():
+    pace = GeneratorPace(updates_per_kframe=10, trained_accuracy=0.9, trained_updates_per_kframe=2,
+                         gated_updates_per_kframe=40)
+
+    class Gated:
+        generator_accuracy, gate_open = None, False
+
+        def train(self, n):
+            return {"loss": 1.0}
+
+    strategy = Gated()
+    assert pace.gated and pace.updates_per_kframe == 40  # the gate starts shut
+    pace.add_frames(1000)
+    assert train_generator(strategy, pace) == 40 and pace.gated
+    strategy.generator_accuracy, strategy.gate_open = 0.95, False  # right, but too few pairs: still shut
+    pace.add_frames(500)
+    assert train_generator(strategy, pace) == 20 and pace.gated and pace.updates_per_kframe == 40  # shut comes first
+    strategy.gate_open = True
+    pace.add_frames(1000)
+    assert train_generator(strategy, pace) == 40 and not pace.gated and pace.trained  # came while shut
+    pace.add_frames(1000)
+    assert pace.updates_per_kframe == 2 and train_generator(strategy, pace) == 2
+    strategy.generator_accuracy = 0.5  # a measurement below the gate's threshold shuts it again
+    strategy.gate_open = False
+    pace.add_frames(1000)
+    assert train_generator(strategy, pace) == 2 and pace.gated
+    pace.add_frames(1000)
+    assert pace.owed == 40 and (pace.frames_gated, pace.frames_trained) == (3500, 2000)
+    again = GeneratorPace(updates_per_kframe=10, trained_accuracy=0.9, trained_updates_per_kframe=2,
+                          gated_updates_per_kframe=40)
+    again.load_state_dict(pace.state_dict())
+    assert (again.owed, again.gated, again.frames_gated) == (40, True, 3500)
+    expert = GeneratorPace(updates_per_kframe=10, gated_updates_per_kframe=40)
+    expert.follow(None, None)  # no generator, no gate: the plain pace
+    expert.add_frames(1000)
+    assert not expert.gated and expert.owed == 10
+    old = GeneratorPace(updates_per_kframe=10, gated_updates_per_kframe=40)
+    old.load_state_dict({"frames": 5000, "settled": 50})  # a checkpoint from before the gated pace
+    assert not old.gated and old.owed == 0
+
+
 def test_the_builder_paces_the_generator_as_configured():
     cfg = make_config("higher", "small", **{"generator.trained_accuracy": 0.97,
                                             "generator.trained_updates_per_kframe": 1.5})
@@ -148,6 +190,10 @@ def test_the_builder_paces_the_generator_as_configured():
     assert (pace.rate, pace.trained_accuracy, pace.trained_rate) == (50 / 1000, 0.97, 1.5 / 1000)
     with pytest.raises(ConfigError, match="generator.trained_accuracy"):
         make_config("higher", "small", **{"generator.trained_accuracy": 1.5})
+    gated = AgentBuilder(make_config("higher", "small", **{"generator.gated_updates_per_kframe": 80.0})).generator_pace()
+    assert gated.gated_rate == 80 / 1000 and gated.gated
+    with pytest.raises(ConfigError, match="generator.gated_updates_per_kframe"):
+        make_config("higher", "small", **{"generator.gated_updates_per_kframe": -1.0})
 
 
 def test_runner_trains_the_generator_at_the_configured_pace():
@@ -161,6 +207,20 @@ def test_runner_trains_the_generator_at_the_configured_pace():
     # Every frame of an original episode counts once; updates owed are 10 per 1000 such frames.
     assert runner.pace.frames == runner.core.frames
     assert runner.pace.settled == int(runner.core.frames * 10 / 1000)
+
+
+def test_runner_trains_a_shut_gates_generator_at_the_gated_pace():
+    from higher_dist.learning.runner import SingleProcessRunner
+
+    cfg = make_config("higher", "small", frames=2000, actors=1, **{"generator.updates_per_kframe": 10.0,
+                                                                  "generator.gated_updates_per_kframe": 40.0,
+                                                                  "replay.min_size": 100,
+                                                                  "replay.samples_per_insert": 0.5})
+    runner = SingleProcessRunner(cfg)
+    runner.run(frames=2000, metrics_every=2000)
+    # 2000 frames hold far fewer than the gate's 100 pairs: every frame came while it was shut.
+    assert not runner.relabeler.gate_open and runner.pace.frames_gated == runner.pace.frames == runner.core.frames
+    assert runner.pace.settled == int(runner.core.frames * 40 / 1000)
 
 
 # -- the limiter and the core's counters ------------------------------------------------------------

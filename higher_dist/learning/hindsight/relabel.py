@@ -5,7 +5,9 @@ The paper's methods differ only here (config_presets.PRESET_RELABEL gives each p
 - `expert`  (DQN+HER): the picked object, described from ground truth (the expert reads it by design);
 - `noisy`   (DQN+HER noisy): the same with each attribute swapped to another value with probability p;
 - `learned` (DQN+HIGhER): the instruction generator describes the view before the pick; it is trained
-  on successful episodes only, and used only once its gate is open.
+  on successful episodes only, and used only once its gate is open. With `relabel.words=expert` the
+  generator still trains and gates, but the relabels carry the expert's words: an ablation that keeps
+  HIGhER's cold start and removes its generator's mistakes.
 
 Every strategy relabels copies of failed episodes that achieved something: successes already carry their
 reward, episodes that achieved nothing have nothing to describe, and relabelled copies are never relabelled
@@ -109,6 +111,11 @@ class RelabelStrategy:
     @property
     def generator_accuracy(self) -> float | None:
         """The generator's latest validation exact match; None without a generator or a measurement."""
+        return None
+
+    @property
+    def gate_open(self) -> bool | None:
+        """Whether the generator's gate lets relabels through; None without a generator."""
         return None
 
     def _not_contradicting(self, candidates: list[Outcome], attrs: np.ndarray) -> np.ndarray:
@@ -216,16 +223,17 @@ class LearnedRelabel(RelabelStrategy):
     parse to an object of the language is dropped and counted as `unparseable`, one whose object fewer
     than `generator.min_agreement` of `generator.agreement_draws` drawn instructions name is dropped and
     counted as `unsure`, one that names the episode's own (failed) goal is dropped and counted as
-    `contradicting`.
+    `contradicting`. With `words="expert"` the open gate lets through the expert's words instead of the
+    generator's (the ablation reads the achieved object, as the expert does).
     """
 
     name = "learned"
 
     def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int | RelabelerSeeds = 0,
                  device: str = "cpu", max_per_episode: int = RelabelConfig.max_per_episode,
-                 held_while_gated: int = RelabelConfig.held_while_gated):
+                 held_while_gated: int = RelabelConfig.held_while_gated, words: str = RelabelConfig.words):
         super().__init__(seed, spec, max_per_episode)
-        self.cfg = cfg
+        self.cfg, self.words = cfg, words
         self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
         self.unsure = 0  # parsed relabels dropped: too few of the generator's draws named their object
@@ -259,7 +267,10 @@ class LearnedRelabel(RelabelStrategy):
         # Greedy words alone draw nothing: the draws stream stays where it was for the other consumers.
         drawing = self.cfg.decoding != "greedy" or self.cfg.agreement_draws > 0
         seed = int(self.rng.integers(2 ** 63)) if drawing else 0
-        if self.cfg.decoding == "sample":
+        if self.words == "expert":
+            tokens = self.spec.expert_tokens(np.stack([o.attrs for o in candidates]), self.rng)
+            agreement = np.ones(len(views))
+        elif self.cfg.decoding == "sample":
             tokens, agreement = self.trainer.generate(views, where, seed=seed), np.ones(len(views))
         else:
             tokens, agreement = self.trainer.describe(views, where, seed, rephrase=self.cfg.decoding == "rephrase",
@@ -295,6 +306,10 @@ class LearnedRelabel(RelabelStrategy):
     @property
     def generator_accuracy(self) -> float | None:
         return self.trainer.val_accuracy if self.trainer.evaluations else None
+
+    @property
+    def gate_open(self) -> bool:
+        return self.trainer.gate_open
 
     def metrics(self) -> dict[str, Any]:
         out = super().metrics()
@@ -345,5 +360,5 @@ def make_relabel_strategy(cfg: Config, seed: int | RelabelerSeeds, space: Object
                                   spec, most)
     if kind == "learned":
         return LearnedRelabel(cfg.generator, spec, seed, device=cfg.device, max_per_episode=most,
-                              held_while_gated=cfg.relabel.held_while_gated)
+                              held_while_gated=cfg.relabel.held_while_gated, words=cfg.relabel.words)
     raise ValueError(f"relabel.strategy: unknown strategy {kind!r}; choose one of {', '.join(RELABEL_STRATEGIES)}")
