@@ -64,12 +64,18 @@ class Endpoints:
         return cls(**{f.name: d[f.name] for f in fields(cls)})
 
 
+# Bases are drawn below the ephemeral ports the OS gives outgoing connections (Linux: from 32768; macOS and
+# Windows: from 49152): a port found free there can be taken by another local cluster's connect() before
+# this one's role binds it, and the bind then fails on every restart.
+FREE_PORTS = (20_000, 32_000)
+
+
 def free_base_port(host: str = DEFAULT_HOST, span: int = PORT_SPAN, tries: int = 200) -> int:
     """A base port whose `span` successive ports are free now (tests and parallel local clusters)."""
     import random
 
     for _ in range(tries):
-        base = random.randint(20_000, 60_000)
+        base = random.randint(FREE_PORTS[0], FREE_PORTS[1] - span)
         socks = []
         try:
             for i in range(span):

@@ -48,6 +48,23 @@ def episodes_message(n: int, seed: int) -> list:
     return encode("episodes", *pack_episodes(episodes), sender="test")
 
 
+def test_free_port_ranges_are_free_and_below_the_ephemeral_ports_of_outgoing_connections():
+    low = 32_768  # Linux's first ephemeral port; /proc says where this machine's range starts
+    if os.path.exists("/proc/sys/net/ipv4/ip_local_port_range"):
+        low = min(low, int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0]))
+    for _ in range(50):
+        base = free_base_port()
+        assert 1024 < base and base + len(CHANNELS) <= low, base
+    with zmq.Context() as context:  # free: every port of the range binds
+        socks = [context.socket(zmq.PULL) for _ in CHANNELS]
+        try:
+            for i, sock in enumerate(socks):
+                sock.bind(f"tcp://127.0.0.1:{base + i}")
+        finally:
+            for sock in socks:
+                sock.close(linger=0)
+
+
 def test_every_channel_has_one_endpoint_and_distinct_ports():
     field_names = {f.name for f in dataclasses.fields(Endpoints)}
     assert field_names == set(CHANNELS)
