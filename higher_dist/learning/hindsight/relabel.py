@@ -257,6 +257,23 @@ class LearnedRelabel(RelabelStrategy):
         if not candidates:
             return []
         candidates = self._outcomes(candidates)
+        if self.words == "expert":  # the ablation: the expert reads what was achieved; no view is built
+            tokens = self.spec.expert_tokens(np.stack([o.attrs for o in candidates]), self.rng)
+            agreement = np.ones(len(candidates))
+        else:
+            tokens, agreement = self._generator_words(candidates)
+        attrs, ok = self.language.parse_many(tokens)
+        unsure = ok & (agreement < self.cfg.min_agreement)
+        self.unparseable += int((~ok).sum())
+        self.unsure += int(unsure.sum())
+        kept = np.flatnonzero(ok & ~unsure)
+        kept = kept[self._not_contradicting([candidates[i] for i in kept], attrs[kept])]
+        copies = self._copies([candidates[i] for i in kept], tokens[kept])
+        self._score([candidates[i] for i in kept], attrs[kept])
+        return copies
+
+    def _generator_words(self, candidates: list[Outcome]) -> tuple[np.ndarray, np.ndarray]:
+        """The generator's instructions for the views that show `candidates`, and each one's agreement."""
         # One reckoning per episode for all of its chosen outcomes (they are consecutive, in step order).
         by_episode = [list(group) for _, group in itertools.groupby(candidates, key=lambda o: id(o.episode))]
         inputs = [generator_inputs(self.spec, group[0].episode, [o.step for o in group]) for group in by_episode]
@@ -267,23 +284,10 @@ class LearnedRelabel(RelabelStrategy):
         # Greedy words alone draw nothing: the draws stream stays where it was for the other consumers.
         drawing = self.cfg.decoding != "greedy" or self.cfg.agreement_draws > 0
         seed = int(self.rng.integers(2 ** 63)) if drawing else 0
-        if self.words == "expert":
-            tokens = self.spec.expert_tokens(np.stack([o.attrs for o in candidates]), self.rng)
-            agreement = np.ones(len(views))
-        elif self.cfg.decoding == "sample":
-            tokens, agreement = self.trainer.generate(views, where, seed=seed), np.ones(len(views))
-        else:
-            tokens, agreement = self.trainer.describe(views, where, seed, rephrase=self.cfg.decoding == "rephrase",
-                                                      draws=self.cfg.agreement_draws)
-        attrs, ok = self.language.parse_many(tokens)
-        unsure = ok & (agreement < self.cfg.min_agreement)
-        self.unparseable += int((~ok).sum())
-        self.unsure += int(unsure.sum())
-        kept = np.flatnonzero(ok & ~unsure)
-        kept = kept[self._not_contradicting([candidates[i] for i in kept], attrs[kept])]
-        copies = self._copies([candidates[i] for i in kept], tokens[kept])
-        self._score([candidates[i] for i in kept], attrs[kept])
-        return copies
+        if self.cfg.decoding == "sample":
+            return self.trainer.generate(views, where, seed=seed), np.ones(len(views))
+        return self.trainer.describe(views, where, seed, rephrase=self.cfg.decoding == "rephrase",
+                                     draws=self.cfg.agreement_draws)
 
     def train(self, budget_steps: int | None = None) -> dict[str, float]:
         """Take `budget_steps` gradient steps (the pace in learning/agent.GeneratorPace decides how many);
