@@ -23,7 +23,7 @@ WORLDS = ("paper", "small")  # our own worlds; a BabyAI level is named by its gy
 # Distinct achieved outcomes one episode records at most (world/spec.py: the first and MAX_LATER more).
 MAX_OUTCOMES = 8
 MAX_HELD_WHILE_GATED = 100_000  # relabel.held_while_gated: about 1 GB of views on the paper world
-MAX_AGREEMENT_DRAWS = 64  # generator.agreement_draws: each is one more decoding of a relabel batch
+MAX_AGREEMENT_DRAWS = 64  # generator.agreement_draws and beam_width: each is one more decoding of a relabel batch
 BABYAI_PREFIX = "BabyAI-"
 
 
@@ -160,6 +160,7 @@ class GeneratorConfig:
     n_min: int = 1000  # gate: pairs needed before relabelling (paper: 1000)
     front_cell_shortcut: bool = True  # feed the front cell's channel embeddings, side by side, straight to the decoder
     min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
+    beam_width: int = 0  # > 1: the likeliest instruction that parses among this many beams (0, 1: word by word)
     decoding: str = "greedy"  # a relabel's words: greedy (the likeliest) | sample (drawn, as the expert draws a phrasing) | rephrase (drawn where they name the greedy words' object)
     temperature: float = 1.0  # decoding=sample or rephrase: words drawn from softmax(logits / temperature)
     top_p: float = 1.0  # decoding=sample or rephrase: draw only among the likeliest words that hold this much probability (nucleus)
@@ -365,8 +366,9 @@ def validate(cfg: Config) -> None:
     _check(0.0 < g.lr_end_fraction <= 1.0, f"generator.lr_end_fraction: must be in (0, 1], got {g.lr_end_fraction}")
     _check(g.temperature > 0, f"generator.temperature: must be > 0, got {g.temperature}")
     _check(0 < g.top_p <= 1, f"generator.top_p: must lie in (0, 1], got {g.top_p}")
-    _check(_is_int(g.agreement_draws) and 0 <= g.agreement_draws <= MAX_AGREEMENT_DRAWS,
-           f"generator.agreement_draws: must be an integer in [0, {MAX_AGREEMENT_DRAWS}], got {g.agreement_draws!r}")
+    for name in ("agreement_draws", "beam_width"):
+        _check(_is_int(getattr(g, name)) and 0 <= getattr(g, name) <= MAX_AGREEMENT_DRAWS,
+               f"generator.{name}: must be an integer in [0, {MAX_AGREEMENT_DRAWS}], got {getattr(g, name)!r}")
     _check(0 <= g.min_agreement <= 1, f"generator.min_agreement: must lie in [0, 1], got {g.min_agreement}")
     _check(g.min_agreement == 0 or g.agreement_draws > 0, "generator.min_agreement: needs generator.agreement_draws > 0")
     _check(g.agreement_draws == 0 or g.decoding != "sample", "generator.agreement_draws: not with generator.decoding=sample")
@@ -379,16 +381,14 @@ def validate(cfg: Config) -> None:
     _check(g.eval_every_updates >= 1, f"generator.eval_every_updates: must be >= 1, got {g.eval_every_updates}")
     rl = cfg.relabel
     _check(0 <= rl.noise_p <= 1, f"relabel.noise_p: must be in [0, 1], got {rl.noise_p}")
-    _check(_is_int(rl.max_per_episode) and 1 <= rl.max_per_episode <= MAX_OUTCOMES,
-           f"relabel.max_per_episode: must be an integer in [1, {MAX_OUTCOMES}], got {rl.max_per_episode!r}")
-    _check(_is_int(rl.held_while_gated) and 0 <= rl.held_while_gated <= MAX_HELD_WHILE_GATED,
-           f"relabel.held_while_gated: must be an integer in [0, {MAX_HELD_WHILE_GATED}], got {rl.held_while_gated!r}")
+    for name, low, high in (("max_per_episode", 1, MAX_OUTCOMES), ("held_while_gated", 0, MAX_HELD_WHILE_GATED)):
+        value = getattr(rl, name)
+        _check(_is_int(value) and low <= value <= high, f"relabel.{name}: must be an integer in [{low}, {high}], got {value!r}")
     for name, off in (("held_while_gated", 0), ("words", "generator")):
         _check(getattr(rl, name) == off or rl.strategy == "learned",
                f"relabel.{name}: only a learned relabeller has a gate to wait for, not {rl.strategy!r}")
-    _check(cfg.actors >= 1, f"actors: must be >= 1, got {cfg.actors}")
-    _check(cfg.envs_per_actor >= 1, f"envs_per_actor: must be >= 1, got {cfg.envs_per_actor}")
-    _check(cfg.frames >= 1, f"frames: must be >= 1, got {cfg.frames}")
+    for name in ("actors", "envs_per_actor", "frames"):
+        _check(getattr(cfg, name) >= 1, f"{name}: must be >= 1, got {getattr(cfg, name)}")
     for name in ("device", "actor_device"):
         value = getattr(cfg, name)
         _check(value in ("auto", "cpu", "cuda") or (value.startswith("cuda:") and value[5:].isdigit()),

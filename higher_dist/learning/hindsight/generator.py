@@ -158,6 +158,37 @@ class InstructionGenerator(nn.Module):
 
         return self._decode(views, self.cfg.max_len if max_len is None else max_len, choose, where)
 
+    @torch.no_grad()
+    def beam(self, views: torch.Tensor, width: int, where: torch.Tensor | None = None
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Beam search: the `width` likeliest instructions found for each view, (B, width, MISSION_LEN)
+        words PAD-padded, and their log-probabilities (B, width), likeliest first. A beam that has
+        emitted END goes on with PAD at no cost, so finished and unfinished beams compete on one score."""
+        b, vocab, max_len = views.shape[0], self.vocab_size, self.cfg.max_len
+        ctx = self.encode(views, where).repeat_interleave(width, 0)
+        h = torch.tanh(self.init_hidden(ctx))[None]
+        token = torch.full((b * width, 1), BEG, dtype=torch.long, device=views.device)
+        scores = torch.full((b, width), -math.inf, device=views.device)
+        scores[:, 0] = 0.0  # one live beam at the start: the others would repeat it
+        words = torch.full((b, width, max(max_len, self.mission_len)), PAD, dtype=torch.long, device=views.device)
+        done = torch.zeros(b, width, dtype=torch.bool, device=views.device)
+        pad_only = torch.full((vocab,), -math.inf, device=views.device)
+        pad_only[PAD] = 0.0
+        for t in range(max_len):
+            logits, h = self._step(token, ctx, h)
+            logp = F.log_softmax(logits[:, 0].masked_fill(self.banned, -math.inf), dim=1).view(b, width, vocab)
+            logp = torch.where(done[..., None], pad_only, logp)
+            scores, flat = (scores[..., None] + logp).view(b, width * vocab).topk(width, dim=1)
+            source, nxt = flat // vocab, flat % vocab
+            words, done = words.gather(1, source[..., None].expand_as(words)), done.gather(1, source)
+            words[:, :, t] = torch.where(done | (nxt == END), torch.full_like(nxt, PAD), nxt)
+            done = done | (nxt == END)
+            h = h.view(1, b, width, -1).gather(2, source[None, ..., None].expand(1, b, width, h.shape[-1]))
+            h, token = h.view(1, b * width, -1), nxt.view(-1, 1)
+            if bool(done.all()):
+                break
+        return words[:, :, :self.mission_len], scores
+
 
 def nucleus(probs: torch.Tensor, top_p: float) -> torch.Tensor:
     """(B, V) probabilities with every word outside each row's nucleus zeroed: the likeliest words, in
@@ -263,13 +294,26 @@ class GeneratorTrainer:
             padded_where[: len(chunk)] = where[i:i + EVAL_CHUNK]
             inputs = torch.as_tensor(padded, device=self.device)
             at = torch.as_tensor(padded_where, device=self.device)
-            if draws is None:
+            if draws is None and self.cfg.beam_width > 1:
+                out = self._likeliest_parsed(*self.model.beam(inputs, self.cfg.beam_width, where=at))
+            elif draws is None:
                 out = self.model.greedy(inputs, where=at)
             else:
                 out = self.model.sample(inputs, generator=draws, temperature=self.cfg.temperature, where=at,
                                         top_p=self.cfg.top_p)
             chunks.append(out.cpu().numpy()[: len(chunk)])
         return np.concatenate(chunks).astype(np.int64)
+
+    def _likeliest_parsed(self, beams: torch.Tensor, scores: torch.Tensor) -> torch.Tensor:
+        """(B, W, L) beams and their (B, W) scores -> (B, L): per view the likeliest beam that names an
+        object (the parser the relabels pass through anyway), the likeliest beam where none does. From
+        a hundred pairs the generator knows what it sees before it knows the grammar (decisions.md)."""
+        b, width, length = beams.shape
+        _, ok = self.language.parse_many(beams.reshape(b * width, length).cpu().numpy())
+        ok = torch.as_tensor(ok.reshape(b, width), device=beams.device)
+        pick = torch.where(ok, scores, torch.full_like(scores, -math.inf)).argmax(dim=1)
+        pick = torch.where(ok.any(dim=1), pick, torch.zeros_like(pick))
+        return beams[torch.arange(b, device=beams.device), pick]
 
     def describe(self, views: np.ndarray, where: np.ndarray | None, seed: int, rephrase: bool = False,
                  draws: int = 0) -> tuple[np.ndarray, np.ndarray]:
