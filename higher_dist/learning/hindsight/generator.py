@@ -276,31 +276,40 @@ class GeneratorTrainer:
     def generate(self, views: np.ndarray, where: np.ndarray | None = None, seed: int | None = None) -> np.ndarray:
         """Instructions (N, MISSION_LEN) int64 for (N, V, V, 4) views and, on a level whose missions
         name locations, their (N,) `WorldSpec.start_locations` (None: 0, nowhere known). Greedy, or with
-        `seed` each word drawn from the generator's distribution (a torch generator seeded with it)."""
+        `seed` each word drawn from the generator's distribution (a torch generator seeded with it).
+        With `beam_width` > 1, a greedy output that names no object is replaced by the likeliest of the
+        beam's instructions that does (kept where none does: the parser judges it downstream)."""
         views = np.asarray(views)
         if views.shape[0] == 0:
             return np.zeros((0, self.model.mission_len), np.int64)
         where = np.zeros(len(views), np.int64) if where is None else np.asarray(where, np.int64)
         self.model.eval()
-        draws = None if seed is None else torch.Generator(device=self.device).manual_seed(int(seed))
+        if seed is not None:
+            draws = torch.Generator(device=self.device).manual_seed(int(seed))
+            return self._decode_padded(views, where, lambda inputs, at: self.model.sample(
+                inputs, generator=draws, temperature=self.cfg.temperature, where=at, top_p=self.cfg.top_p))
+        words = self._decode_padded(views, where, lambda inputs, at: self.model.greedy(inputs, where=at))
+        if self.cfg.beam_width > 1:
+            # Only the outputs that do not parse are searched again: a trained generator's greedy words
+            # almost all parse, so the beam costs next to nothing once the gate is open.
+            redo = ~self.language.parse_many(words)[1]
+            if redo.any():
+                words[redo] = self._decode_padded(views[redo], where[redo], lambda inputs, at: self._likeliest_parsed(
+                    *self.model.beam(inputs, self.cfg.beam_width, where=at)))
+        return words
+
+    def _decode_padded(self, views: np.ndarray, where: np.ndarray, decode) -> np.ndarray:
+        """`decode(views, where)` over chunks of at most EVAL_CHUNK views, each padded to one of a few
+        fixed batch sizes: the CPU kernels cache per input shape, and the relabeler sees every batch size
+        from 1 up, which grew its memory by ~70 MiB before it levelled off."""
         chunks = []
         for i in range(0, views.shape[0], EVAL_CHUNK):
             chunk = views[i:i + EVAL_CHUNK]
-            # Pad to a few fixed batch sizes: the CPU kernels cache per input shape, and the relabeler
-            # sees every batch size from 1 up, which grew its memory by ~70 MiB before it levelled off.
             padded = np.zeros((inference_batch(len(chunk)), *chunk.shape[1:]), chunk.dtype)
             padded[: len(chunk)] = chunk
             padded_where = np.zeros(len(padded), np.int64)
             padded_where[: len(chunk)] = where[i:i + EVAL_CHUNK]
-            inputs = torch.as_tensor(padded, device=self.device)
-            at = torch.as_tensor(padded_where, device=self.device)
-            if draws is None and self.cfg.beam_width > 1:
-                out = self._likeliest_parsed(*self.model.beam(inputs, self.cfg.beam_width, where=at))
-            elif draws is None:
-                out = self.model.greedy(inputs, where=at)
-            else:
-                out = self.model.sample(inputs, generator=draws, temperature=self.cfg.temperature, where=at,
-                                        top_p=self.cfg.top_p)
+            out = decode(torch.as_tensor(padded, device=self.device), torch.as_tensor(padded_where, device=self.device))
             chunks.append(out.cpu().numpy()[: len(chunk)])
         return np.concatenate(chunks).astype(np.int64)
 
