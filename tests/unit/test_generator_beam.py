@@ -8,20 +8,20 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from test_relabel import FEW_OBJECTS, wrong_picks
 
-from higher_dist.config import ConfigError, GeneratorConfig, WorldConfig
+from higher_dist.config import ConfigError, GeneratorConfig
 from higher_dist.config_presets import make_config
 from higher_dist.learning.hindsight.generator import GeneratorTrainer, InstructionGenerator, decoder_targets
 from higher_dist.learning.hindsight.generator_data import semantic_accuracy
 from higher_dist.learning.hindsight.generator_measure import make_pairs
+from higher_dist.learning.hindsight.relabel import LearnedRelabel, make_relabel_strategy
 from higher_dist.world.language import BEG, END, MISSION_LEN, PAD, parse_many
 
 torch.set_num_threads(1)
 
 SMALL = GeneratorConfig(embed_dim=8, conv_channels=(16, 16), word_embed_dim=16, hidden=64, lr=3e-3,
                         batch_size=32, capacity=2000, n_min=10, min_accuracy=0.5, val_fraction=0.2)
-FEW_OBJECTS = WorldConfig(name="few", room_size=6, n_objects=4, colors=("red", "green", "blue"),
-                          shades=("light", "dark"), sizes=("tiny", "giant"), heldout_count=6)
 
 
 @pytest.fixture(scope="module")
@@ -85,11 +85,26 @@ def test_unparsed_greedy_words_are_replaced_by_the_likeliest_beam_that_parses(fe
     first = ok.argmax(axis=1)  # beams come likeliest first
     assert searched.sum() >= 10
     assert np.array_equal(chosen[searched], words.numpy()[np.arange(len(views)), first][searched])
-    plain, searched = semantic_accuracy(greedy, goals), semantic_accuracy(chosen, goals)
+    plain, searched_words = semantic_accuracy(greedy, goals), semantic_accuracy(chosen, goals)
     assert plain["parse_rate"] < 0.9  # the premise: this generator's greedy words often do not parse
-    assert searched["parse_rate"] > plain["parse_rate"] and searched["exact"] > plain["exact"]
+    assert searched_words["parse_rate"] > plain["parse_rate"] and searched_words["exact"] > plain["exact"]
     # The gate reads the same decoding as the relabels.
-    assert beamed.evaluate_pairs(views, few_pairs_trainer[1][1])["exact"] == pytest.approx(searched["exact"])
+    assert beamed.evaluate_pairs(views, few_pairs_trainer[1][1])["exact"] == pytest.approx(searched_words["exact"])
+
+
+def test_the_relabeller_writes_the_beams_words(few_pairs_trainer):
+    """Through LearnedRelabel: the same weights, with a beam, relabel more of the offered wrong picks
+    (fewer outputs dropped as unparseable), and the config reaches the strategy's generator."""
+    offered = wrong_picks(150, "train", seed=5)
+    made = {}
+    for width in (0, 8):
+        strategy = LearnedRelabel(replace(SMALL, n_min=1, min_accuracy=0.0, beam_width=width), seed=0)
+        strategy.trainer.load_state_dict(few_pairs_trainer[0].state_dict())
+        made[width] = (len(strategy.relabel(offered)), strategy.metrics()["relabel_unparseable"])
+    assert made[0][1] >= 15 and made[8][1] < made[0][1] / 3
+    assert made[8][0] > made[0][0]
+    cfg = make_config("higher", "small", **{"generator.beam_width": 8})
+    assert make_relabel_strategy(cfg, seed=0).trainer.cfg.beam_width == 8
 
 
 @pytest.mark.parametrize("value", [-1, 65, 2.5, True, "8"])
