@@ -160,7 +160,7 @@ class GeneratorConfig:
     n_min: int = 1000  # gate: pairs needed before relabelling (paper: 1000)
     front_cell_shortcut: bool = True  # feed the front cell's channel embeddings, side by side, straight to the decoder
     min_accuracy: float = 0.5  # gate: validation exact match needed; 0 = the paper's ungated variant
-    beam_width: int = 0  # > 1: the likeliest instruction that parses among this many beams (0, 1: word by word)
+    beam_width: int = 0  # > 1: greedy words that do not parse give way to the likeliest of this many beams that does
     decoding: str = "greedy"  # a relabel's words: greedy (the likeliest) | sample (drawn, as the expert draws a phrasing) | rephrase (drawn where they name the greedy words' object)
     temperature: float = 1.0  # decoding=sample or rephrase: words drawn from softmax(logits / temperature)
     top_p: float = 1.0  # decoding=sample or rephrase: draw only among the likeliest words that hold this much probability (nucleus)

@@ -85,6 +85,7 @@ def test_unparsed_greedy_words_are_replaced_by_the_likeliest_beam_that_parses(fe
     first = ok.argmax(axis=1)  # beams come likeliest first
     assert searched.sum() >= 10
     assert np.array_equal(chosen[searched], words.numpy()[np.arange(len(views)), first][searched])
+    assert np.array_equal(chosen[~ok.any(axis=1)], greedy[~ok.any(axis=1)])  # nothing found: greedy words stay
     plain, searched_words = semantic_accuracy(greedy, goals), semantic_accuracy(chosen, goals)
     assert plain["parse_rate"] < 0.9  # the premise: this generator's greedy words often do not parse
     assert searched_words["parse_rate"] > plain["parse_rate"] and searched_words["exact"] > plain["exact"]

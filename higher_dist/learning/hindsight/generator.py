@@ -172,8 +172,7 @@ class InstructionGenerator(nn.Module):
         scores[:, 0] = 0.0  # one live beam at the start: the others would repeat it
         words = torch.full((b, width, max(max_len, self.mission_len)), PAD, dtype=torch.long, device=views.device)
         done = torch.zeros(b, width, dtype=torch.bool, device=views.device)
-        pad_only = torch.full((vocab,), -math.inf, device=views.device)
-        pad_only[PAD] = 0.0
+        pad_only = torch.full((vocab,), -math.inf, device=views.device).index_fill_(0, torch.tensor([PAD]), 0.0)
         for t in range(max_len):
             logits, h = self._step(token, ctx, h)
             logp = F.log_softmax(logits[:, 0].masked_fill(self.banned, -math.inf), dim=1).view(b, width, vocab)
@@ -290,12 +289,13 @@ class GeneratorTrainer:
                 inputs, generator=draws, temperature=self.cfg.temperature, where=at, top_p=self.cfg.top_p))
         words = self._decode_padded(views, where, lambda inputs, at: self.model.greedy(inputs, where=at))
         if self.cfg.beam_width > 1:
-            # Only the outputs that do not parse are searched again: a trained generator's greedy words
-            # almost all parse, so the beam costs next to nothing once the gate is open.
-            redo = ~self.language.parse_many(words)[1]
-            if redo.any():
-                words[redo] = self._decode_padded(views[redo], where[redo], lambda inputs, at: self._likeliest_parsed(
+            # Only outputs that do not parse are searched again: a trained generator's almost all parse.
+            redo = np.flatnonzero(~self.language.parse_many(words)[1])
+            if redo.size:
+                searched = self._decode_padded(views[redo], where[redo], lambda inputs, at: self._likeliest_parsed(
                     *self.model.beam(inputs, self.cfg.beam_width, where=at)))
+                found = self.language.parse_many(searched)[1]
+                words[redo[found]] = searched[found]
         return words
 
     def _decode_padded(self, views: np.ndarray, where: np.ndarray, decode) -> np.ndarray:
@@ -315,8 +315,7 @@ class GeneratorTrainer:
 
     def _likeliest_parsed(self, beams: torch.Tensor, scores: torch.Tensor) -> torch.Tensor:
         """(B, W, L) beams and their (B, W) scores -> (B, L): per view the likeliest beam that names an
-        object (the parser the relabels pass through anyway), the likeliest beam where none does. From
-        a hundred pairs the generator knows what it sees before it knows the grammar (decisions.md)."""
+        object (the parser every relabel passes through), the likeliest beam where none does."""
         b, width, length = beams.shape
         _, ok = self.language.parse_many(beams.reshape(b * width, length).cpu().numpy())
         ok = torch.as_tensor(ok.reshape(b, width), device=beams.device)
