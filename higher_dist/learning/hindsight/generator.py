@@ -172,7 +172,7 @@ class InstructionGenerator(nn.Module):
         scores[:, 0] = 0.0  # one live beam at the start: the others would repeat it
         words = torch.full((b, width, max(max_len, self.mission_len)), PAD, dtype=torch.long, device=views.device)
         done = torch.zeros(b, width, dtype=torch.bool, device=views.device)
-        pad_only = torch.full((vocab,), -math.inf, device=views.device).index_fill_(0, torch.tensor([PAD]), 0.0)
+        pad_only = torch.where(torch.arange(vocab, device=views.device) == PAD, 0.0, -math.inf)  # a finished beam's step
         for t in range(max_len):
             logits, h = self._step(token, ctx, h)
             logp = F.log_softmax(logits[:, 0].masked_fill(self.banned, -math.inf), dim=1).view(b, width, vocab)
