@@ -11,6 +11,8 @@ import json
 
 import torch
 
+from higher_dist.config import ConfigError
+from higher_dist.config_flags import explicit_overrides
 from higher_dist.config_presets import make_config
 from higher_dist.learning.hindsight.generator_measure import measure_generator
 
@@ -35,12 +37,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eval-pairs", type=int, default=2000, help="fresh pairs per evaluation set")
     parser.add_argument("--world", default="paper", help="paper | small")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--set", action="append", default=[], metavar="generator.FIELD=VALUE",
+                        help="measure a variant of the generator, e.g. --set generator.beam_width=8 (repeatable)")
     args = parser.parse_args(argv)
     if args.pairs < 1 or args.steps < 1 or args.eval_pairs < 1:
         parser.error("--pairs, --steps and --eval-pairs must be >= 1")
     torch.set_num_threads(args.threads)
-    # The generator HIGhER runs on that world (its world's lr and sizes), as `higher-reproduce generator` does.
-    cfg = make_config("higher", args.world)
+    # The generator HIGhER runs on that world (its world's lr and sizes), as `higher-reproduce generator`
+    # does, with any --set on top: only the generator's own fields shape this measurement.
+    try:
+        overrides = explicit_overrides(argparse.Namespace(set=args.set))
+        others = [key for key in overrides if not key.startswith("generator.")]
+        if others:
+            raise ConfigError(f"--set {others[0]}: only generator.* fields shape this measurement")
+        cfg = make_config("higher", args.world, **overrides)
+    except ConfigError as e:
+        parser.error(str(e))
     result = measure_generator(args.pairs, args.steps, args.seed, cfg.world, args.eval_pairs, cfg=cfg.generator)
     print(format_table(result))
     print(json.dumps({k: v for k, v in result.items() if k not in ("seen", "unseen")}

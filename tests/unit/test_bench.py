@@ -2,6 +2,8 @@
 Speed itself is never asserted: figures are printed, not tested."""
 import json
 
+import pytest
+
 from higher_dist.bench import COMMANDS, main
 
 
@@ -133,3 +135,21 @@ def test_generator_bench_measures_the_generator_higher_runs_on_that_world(capsys
     last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert last["pairs"] == 16 and last["steps"] == 2 and 0 <= last["seen_exact_match"] <= 1
     assert seen == [make_config("higher", "paper").generator]
+
+
+def test_generator_bench_measures_a_variant_set_on_the_command_line(capsys, monkeypatch):
+    from higher_dist.bench import generator_bench
+
+    seen = []
+    real = generator_bench.measure_generator
+    monkeypatch.setattr(generator_bench, "measure_generator",
+                        lambda *args, **kwargs: (seen.append(kwargs["cfg"]), real(*args, **kwargs))[1])
+    small = ["generator", "--pairs", "16", "--steps", "2", "--eval-pairs", "16"]
+    assert main(small + ["--set", "generator.beam_width=8", "--set", "generator.lr=0.01"]) == 0
+    assert seen[-1].beam_width == 8 and seen[-1].lr == 0.01
+    for bad, named in (("dqn.lr=0.1", "dqn.lr"), ("generator.beam_width=-1", "generator.beam_width"),
+                       ("generator.no_such_field=1", "generator.no_such_field")):
+        with pytest.raises(SystemExit) as stop:
+            main(small + ["--set", bad])
+        assert stop.value.code == 2 and named in capsys.readouterr().err
+    assert len(seen) == 1  # nothing refused was measured
