@@ -62,6 +62,7 @@ def test_two_clusters_one_right_after_the_other_on_the_same_ports(tmp_path):
 def test_a_port_something_listens_on_is_still_refused():
     port = free_base_port()
     holder = socket.socket()
+    holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # binds even over an earlier run's TIME_WAIT
     holder.bind(("127.0.0.1", port + 2))
     holder.listen()
     try:

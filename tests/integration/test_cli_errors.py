@@ -150,7 +150,11 @@ def test_cluster_refuses_ports_already_in_use(tmp_path, capsys):
 
     base = free_base_port()
     held = pysocket.socket()
+    # Listening with SO_REUSEADDR: a bind that a TIME_WAIT left by an earlier run on this port would
+    # refuse goes through, and the listener still keeps every later bind off the port.
+    held.setsockopt(pysocket.SOL_SOCKET, pysocket.SO_REUSEADDR, 1)
     held.bind(("127.0.0.1", base + 2))  # the weights port
+    held.listen()
     try:
         rc = cluster_main(["--world", "small", "--no-dashboard", "--run-dir", str(tmp_path / "run"),
                            "--port-base", str(base)])
