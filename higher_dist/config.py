@@ -180,6 +180,7 @@ class RelabelConfig:
     # BabyAI levels record several outcomes per episode, FetchAttr one; more than this: a random choice.
     max_per_episode: int = 4  # relabelled copies of one failed episode at most, one per distinct outcome
     held_while_gated: int = 0  # learned: the newest failures kept while the gate is shut, relabelled when it opens
+    withheld_while_gated: bool = False  # learned: failures it cannot relabel yet are kept out of the replay (their frames still count)
     words: str = "generator"  # learned: whose words a relabel carries once the gate is open (expert: an ablation)
 
 
@@ -340,13 +341,12 @@ def validate(cfg: Config) -> None:
     _check(n.film_blocks == 0 or n.fusion == "film",
            f"network.film_blocks: {n.film_blocks} block(s) need network.fusion=film, got {n.fusion!r}")
     d = cfg.dqn
-    _check(d.batch_size >= 1, f"dqn.batch_size: must be >= 1, got {d.batch_size}")
-    _check(d.sequence_batch >= 1, f"dqn.sequence_batch: must be >= 1, got {d.sequence_batch}")
+    for name in ("batch_size", "sequence_batch", "n_step"):
+        _check(getattr(d, name) >= 1, f"dqn.{name}: must be >= 1, got {getattr(d, name)}")
     _check(d.lr > 0, f"dqn.lr: must be > 0, got {d.lr}")
     _check(d.lr_decay_frames >= 0, f"dqn.lr_decay_frames: must be >= 0 (0: constant lr), got {d.lr_decay_frames}")
     _check(0.0 < d.lr_end_fraction <= 1.0, f"dqn.lr_end_fraction: must be in (0, 1], got {d.lr_end_fraction}")
     _check(0.0 <= d.gamma <= 1.0, f"dqn.gamma: must be in [0, 1], got {d.gamma}")
-    _check(d.n_step >= 1, f"dqn.n_step: must be >= 1, got {d.n_step}")
     _check(0.0 < d.polyak_tau <= 1.0, f"dqn.polyak_tau: must be in (0, 1], got {d.polyak_tau}")
     _check(0.0 <= d.average_tau <= 1.0, f"dqn.average_tau: must be in [0, 1] (0: no average), got {d.average_tau}")
     r = cfg.replay
@@ -384,7 +384,7 @@ def validate(cfg: Config) -> None:
     for name, low, high in (("max_per_episode", 1, MAX_OUTCOMES), ("held_while_gated", 0, MAX_HELD_WHILE_GATED)):
         value = getattr(rl, name)
         _check(_is_int(value) and low <= value <= high, f"relabel.{name}: must be an integer in [{low}, {high}], got {value!r}")
-    for name, off in (("held_while_gated", 0), ("words", "generator")):
+    for name, off in (("held_while_gated", 0), ("words", "generator"), ("withheld_while_gated", False)):
         _check(getattr(rl, name) == off or rl.strategy == "learned",
                f"relabel.{name}: only a learned relabeller has a gate to wait for, not {rl.strategy!r}")
     for name in ("actors", "envs_per_actor", "frames"):

@@ -81,6 +81,7 @@ RELABEL_UNPARSEABLE = "relabel_unparseable"  # generated instructions the gramma
 RELABEL_UNSURE = "relabel_unsure"  # learned relabels too few of the generator's draws agreed with (generator.min_agreement), dropped [count]
 RELABEL_GATED_OFF = "relabel_gated_off"  # wrong picks offered while the generator's gate was shut (held ones: relabel_held) [count]
 RELABEL_HELD = "relabel_held"  # failed episodes kept while the gate is shut, waiting to be relabelled [count]
+RELABEL_WITHHELD = "relabel_withheld"  # failed episodes kept out of the replay while the gate was shut [count]
 RELABEL_GATE_OPEN = "relabel_gate_open"  # whether the generator relabels yet (enough pairs and accuracy) [flag]
 RELABEL_DATASET_SIZE = "relabel_dataset_size"  # (view, instruction) pairs in the generator's dataset [pairs]
 GENERATOR_VAL_ACCURACY = "generator_val_accuracy"  # generator exact match on its validation pairs, latest [fraction]
@@ -89,8 +90,8 @@ GENERATOR_TRAIN_STEPS = "generator_train_steps"  # the generator's training upda
 GENERATOR_EVALUATIONS = "generator_evaluations"  # the generator's validation measurements [count]
 GENERATOR_LOSS = "generator_loss"  # the generator's training loss, last update [loss]
 RELABEL_KEYS = (RELABEL_STRATEGY, RELABEL_CONSIDERED, RELABELS_MADE, RELABEL_ACCURACY, RELABEL_ACCURACY_TOTAL,
-                RELABEL_CONTRADICTING, RELABEL_UNPARSEABLE, RELABEL_UNSURE, RELABEL_GATED_OFF, RELABEL_HELD, RELABEL_GATE_OPEN,
-                RELABEL_DATASET_SIZE,
+                RELABEL_CONTRADICTING, RELABEL_UNPARSEABLE, RELABEL_UNSURE, RELABEL_GATED_OFF, RELABEL_HELD,
+                RELABEL_WITHHELD, RELABEL_GATE_OPEN, RELABEL_DATASET_SIZE,
                 GENERATOR_VAL_ACCURACY, GENERATOR_VAL_AT_PAIRS, GENERATOR_TRAIN_STEPS, GENERATOR_EVALUATIONS,
                 GENERATOR_LOSS)
 # The relabeler service's own (cluster runs only).

@@ -100,6 +100,22 @@ class Episode:
                        later_achieved=later_achieved, later_step=later_step)
 
 
+@dataclass(frozen=True)
+class Withheld:
+    """Original episodes the relabeller kept out of the replay (relabel.withheld_while_gated): the learner
+    still counts them, so env frames, the replay ratio and the training success stay those of the actors."""
+
+    episodes: int = 0
+    frames: int = 0
+
+    def __add__(self, other: "Withheld") -> "Withheld":
+        return Withheld(self.episodes + other.episodes, self.frames + other.frames)
+
+    @classmethod
+    def of(cls, episodes: list[Episode]) -> "Withheld":
+        return cls(len(episodes), sum(ep.length for ep in episodes))
+
+
 def episodes_state(episodes: list[Episode]) -> dict[str, Any]:
     """Many episodes as one array per field (their arrays end to end, with each one's length beside): a
     checkpoint of thousands of them writes a few tensors, not thousands."""

@@ -12,7 +12,7 @@ from higher_dist import metrics as m
 from higher_dist.config import Config
 from higher_dist.learning.compiled_loss import TRACING_GATE
 from higher_dist.learning.dqn import DQNUpdater, learning_rate_at
-from higher_dist.learning.episode import SUCCESS, Episode
+from higher_dist.learning.episode import SUCCESS, Episode, Withheld
 from higher_dist.learning.rate_limiter import SamplesPerInsertLimiter
 from higher_dist.learning.replay import PrioritizedReplay
 from higher_dist.learning.seeds import Seeds
@@ -51,10 +51,17 @@ class Learner:
         return self.dqn.updates
 
     # -- experience -------------------------------------------------------------------------------
-    def add_episodes(self, episodes: list[Episode]) -> None:
+    def add_episodes(self, episodes: list[Episode], withheld: Withheld = Withheld()) -> None:
+        """Store `episodes`; `withheld`: originals the relabeller kept out of the replay, counted as the
+        actors played them (env frames, the replay ratio's inserts, training success: failures)."""
         self._settle()
         count_copies = self.cfg.replay.ratio_counts == "transitions"
         self.replay.add_episodes(episodes)  # all or none: a failure leaves the replay and the counts as they were
+        if not count_copies:  # env frames, as the actors played them; stored transitions exclude these
+            self.limiter.record_insert(withheld.frames)
+        self.frames += withheld.frames
+        self.episodes += withheld.episodes
+        self.recent_success.extend([0] * withheld.episodes)
         for ep in episodes:
             # By default relabelled copies are stored but not counted: equal updates per env frame.
             if count_copies or not ep.relabelled:

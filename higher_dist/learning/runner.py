@@ -18,6 +18,7 @@ from higher_dist.config import Config
 from higher_dist.learning.acting import act
 from higher_dist.learning.agent import AgentBuilder, train_generator
 from higher_dist.learning.compiled_loss import TRACING_GATE
+from higher_dist.learning.hindsight.relabel import relabel_batch
 
 
 class SingleProcessRunner:
@@ -108,9 +109,8 @@ class SingleProcessRunner:
         return record
 
     def _handle(self, episodes) -> None:
-        self.relabeler.observe(episodes)
-        copies = self.relabeler.relabel(episodes)
-        self.core.add_episodes(episodes + copies)
+        stored, withheld = relabel_batch(self.relabeler, episodes)
+        self.core.add_episodes(stored, withheld)
         self.pace.add_frames(sum(ep.length for ep in episodes))
         train_generator(self.relabeler, self.pace)
 

@@ -40,13 +40,14 @@ from higher_dist.launch.layout import available_cores, learner_alone
 from higher_dist.launch.topology import Endpoints
 from higher_dist.learning.agent import AgentBuilder
 from higher_dist.learning.devices import resolve_device
+from higher_dist.learning.episode import Withheld
 from higher_dist.roles.control_server import ControlServer
 from higher_dist.roles.evaluator import BackgroundEvaluator
 from higher_dist.roles.loop import Every, HandlerGuard, internal, stop_on_internal_error
 from higher_dist.roles.registry import RateMeter, RoleRegistry
 from higher_dist.rundir import RunDir, load_or_refuse, plain_record
 from higher_dist.wire import codec, sockets
-from higher_dist.wire.episodes import unpack_episodes
+from higher_dist.wire.episodes import unpack_episodes, withheld_in
 from higher_dist.wire.security import Security
 
 log = logging.getLogger("higher.learner")
@@ -126,18 +127,19 @@ class LearnerService:
             if msg.type != "episodes":
                 self.rejects.add("unexpected_type")
                 continue
-            episodes = self.guard(msg, self.check_episodes, msg)
-            if episodes:
+            checked = self.guard(msg, self.check_episodes, msg)
+            if checked is not None and (checked[0] or checked[1] != Withheld()):
                 with internal("replay insert"):
-                    self.core.add_episodes(episodes)
+                    self.core.add_episodes(*checked)
 
-    def check_episodes(self, msg) -> list:
-        """The message's episodes that pass the checks against the run's world; a WireError drops it all."""
+    def check_episodes(self, msg) -> tuple[list, Withheld]:
+        """The message's episodes that pass the checks against the run's world, and the originals its
+        sender (the relabeler) kept out of the replay; a WireError drops it all."""
         return unpack_episodes(
             msg, self.core.spec, reject=lambda reason: self.rejects.add(reason, where="experience"),
             # No bound on the episodes' weights versions: after a learner restart without a
             # checkpoint, honest actors still act with the previous instance's newer versions.
-            allow_relabelled=msg.sender == "relabeler", n_actors=self.cfg.actors)
+            allow_relabelled=msg.sender == "relabeler", n_actors=self.cfg.actors), withheld_in(msg)
 
     # -- outputs ------------------------------------------------------------------------------------
     def publish_weights(self) -> None:

@@ -26,6 +26,8 @@ import zmq
 from higher_dist import metrics as m
 from higher_dist.launch.channels import open_channel
 from higher_dist.learning.agent import AgentBuilder, train_generator
+from higher_dist.learning.episode import Withheld
+from higher_dist.learning.hindsight.relabel import relabel_batch
 from higher_dist.roles.client import start_role
 from higher_dist.roles.loop import Every, HandlerGuard, internal, stop_on_internal_error
 from higher_dist.rundir import RunDir, load_or_refuse, plain_record
@@ -51,21 +53,27 @@ class RelabelerService:
         self.pace = agent.generator_pace()
         self.trainable = self.strategy.name == "learned"  # only the generator has anything to train
         self.received = self.relabelled = 0
+        self.withheld_unsent = Withheld()  # kept out of the replay, not yet reported to the learner
 
     def check(self, msg) -> list:
         """The message's episodes that pass the checks against the run's world; a WireError drops it all."""
         return unpack_episodes(msg, self.agent.spec, reject=lambda r: self.rejects.add(r, where="episodes"),
                                allow_relabelled=False, n_actors=self.agent.cfg.actors)
 
-    def relabel(self, episodes: list) -> list:
-        """Frames to forward to the learner: checked episodes and their relabelled copies."""
+    def relabel(self, episodes: list) -> list | None:
+        """The message to forward to the learner: checked episodes the strategy keeps in, their relabelled
+        copies, and the count of those it kept out; None while it has nothing to store (the count waits
+        for the next message: one carries at least one episode)."""
         self.received += len(episodes)
-        self.strategy.observe(episodes)
-        copies = self.strategy.relabel(episodes)
-        self.relabelled += len(copies)
+        stored, withheld = relabel_batch(self.strategy, episodes)
+        self.relabelled += len(stored) - len(episodes) + withheld.episodes
         if self.trainable:
             self.pace.add_frames(sum(ep.length for ep in episodes))
-        fields, arrays = pack_episodes(episodes + copies)
+        self.withheld_unsent += withheld
+        if not stored:
+            return None
+        fields, arrays = pack_episodes(stored, self.withheld_unsent)
+        self.withheld_unsent = Withheld()
         return codec.encode("episodes", fields, arrays, sender="relabeler")
 
     def train_slice(self) -> None:
@@ -127,7 +135,9 @@ def run_relabeler(learner: str, state_dir: str | None = None, resume: bool = Fal
                 episodes = guard(msg, service.check, msg)
                 if episodes:
                     with internal("relabelling"):
-                        outbox.put(service.relabel(episodes))
+                        out = service.relabel(episodes)
+                        if out is not None:
+                            outbox.put(out)
             elif msg is not None:
                 client.rejects.add("unexpected_type")
             with internal("generator training"):

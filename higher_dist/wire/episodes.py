@@ -24,7 +24,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from higher_dist.learning.episode import Episode
+from higher_dist.learning.episode import Episode, Withheld
 from higher_dist.wire.codec import Message, WireError
 from higher_dist.world.episode_rules import EPISODE_FAULTS, episode_faults
 from higher_dist.world.spec import WorldSpec
@@ -42,8 +42,10 @@ EPISODE_REJECTS = (
 ) + tuple(reason for reason in EPISODE_FAULTS if reason not in ("attribute", "cell"))
 
 
-def pack_episodes(episodes: Sequence[Episode]) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """(fields, arrays) for `codec.encode("episodes", fields, arrays)`."""
+def pack_episodes(episodes: Sequence[Episode], withheld: Withheld = Withheld()
+                  ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """(fields, arrays) for `codec.encode("episodes", fields, arrays)`; `withheld`: the relabeler's
+    count of originals it kept out of the replay since its last message."""
     if not episodes:
         raise ValueError("pack_episodes: an episodes message needs at least one episode")
     n = len(episodes)
@@ -68,7 +70,10 @@ def pack_episodes(episodes: Sequence[Episode]) -> tuple[dict[str, Any], dict[str
         "actor_id": np.array([ep.actor_id for ep in episodes], dtype=np.int32),
         "weights_version": np.array([ep.weights_version for ep in episodes], dtype=np.int64),
     }
-    return {"count": n}, arrays
+    fields: dict[str, Any] = {"count": n}
+    if withheld != Withheld():
+        fields.update(withheld_episodes=withheld.episodes, withheld_frames=withheld.frames)
+    return fields, arrays
 
 
 def unpack_episodes(msg: Message, spec: WorldSpec, *, reject=None, allow_relabelled: bool = True,
@@ -77,8 +82,8 @@ def unpack_episodes(msg: Message, spec: WorldSpec, *, reject=None, allow_relabel
 
     A structural fault of the batch raises WireError (drop the message). A fault of one episode calls
     `reject(reason)` and drops that episode; without `reject` it raises WireError(reason) instead.
-    allow_relabelled: whether this sender may send relabelled copies (only the relabeler may).
-    Each episode owns fresh, writable copies of its arrays, so the replay may keep one episode without
+    allow_relabelled: whether this sender may send relabelled copies and withheld counts (only the
+    relabeler may); the counts must add up (`withheld_in` reads them). Each episode owns fresh, writable copies of its arrays, so the replay may keep one episode without
     pinning the whole received batch in memory.
     """
     if msg.type != "episodes":
@@ -94,6 +99,12 @@ def unpack_episodes(msg: Message, spec: WorldSpec, *, reject=None, allow_relabel
     if steps != actions.shape[0] or steps + n != frames.shape[0]:
         raise WireError("shape", "lengths sum to %d steps; got %d actions and %d frames (expected %d)"
                         % (steps, actions.shape[0], frames.shape[0], steps + n))
+    withheld = withheld_in(msg)
+    if withheld != Withheld() and not allow_relabelled:
+        raise WireError("field", "withheld episodes from a sender that relabels nothing")
+    if not withheld.episodes <= withheld.frames <= withheld.episodes * spec.max_steps:
+        raise WireError("range", "%d withheld frames for %d withheld episodes of at most %d steps"
+                        % (withheld.frames, withheld.episodes, spec.max_steps))
     bad = _episode_faults(a, spec, allow_relabelled, n_actors)
     episodes = []
     step_start = frame_start = 0
@@ -117,6 +128,11 @@ def unpack_episodes(msg: Message, spec: WorldSpec, *, reject=None, allow_relabel
         step_start += length
         frame_start += length + 1
     return episodes
+
+
+def withheld_in(msg: Message) -> Withheld:
+    """The originals an `episodes` message says its sender kept out of the replay (none unless it says)."""
+    return Withheld(int(msg.fields.get("withheld_episodes", 0)), int(msg.fields.get("withheld_frames", 0)))
 
 
 def _episode_faults(a: dict, spec: WorldSpec, allow_relabelled: bool, n_actors: int | None) -> list[str]:

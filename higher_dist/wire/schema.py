@@ -194,6 +194,10 @@ _SPECS: tuple[MessageSpec, ...] = (
     )),
     MessageSpec("episodes", fields=(
         Field("count", "int", 1, MAX_EPISODES, sym="N"),
+        # The relabeler's only: originals it kept out of the replay since its last message, counted by the
+        # learner as played (relabel.withheld_while_gated; wire/episodes.py checks the sender and the sum).
+        Field("withheld_episodes", "int", 0, MAX_COUNTER, required=False, default=0),
+        Field("withheld_frames", "int", 0, MAX_COUNTER, required=False, default=0),
     ), arrays=(
         Array("frames", "uint8", (_F, _V, _V, exact(4)), 0, VIEW_CHANNEL_MAX),
         Array("actions", "uint8", (_S,), 0, N_ACTIONS - 1),

@@ -41,11 +41,13 @@ def finished_run(tmp_path_factory) -> FinishedRun:
     # With a moving average of the weights, so the run also shows it evaluated end to end, and the paper
     # world's bag-of-words instruction encoder, so its weights travel from the learner to every role (the
     # other end-to-end tests run the small world's GRU); its relabeler holds the failures it is offered while
-    # the generator's gate is shut, and relabels them once it opens (at 30 pairs, not the fast 10: a first
+    # the generator's gate is shut, keeps them out of the replay meanwhile (the learner counts them from the
+    # relabeler's messages), and relabels them once it opens (at 30 pairs, not the fast 10: a first
     # message of 10 successes would open it before any failure was offered).
     watch, launcher, _ = start_cluster(run_dir, base, frames=BUDGET,
                                        **{"dqn.average_tau": 0.01, "network.text": "bow",
-                                          "relabel.held_while_gated": HELD, "generator.n_min": 30})
+                                          "relabel.held_while_gated": HELD, "relabel.withheld_while_gated": "true",
+                                          "generator.n_min": 30})
     t0 = time.monotonic()
     try:
         # Poll while it runs: the roles table and the launcher's children give every pid to check later.
@@ -148,6 +150,7 @@ def test_failures_offered_while_the_gate_was_shut_are_relabelled_once_it_opens(f
     accounted = state["relabelled"] + state["unparseable"] + state["contradicting"] + state["held"]["count"]
     assert accounted == state["considered"], {k: v for k, v in state.items() if not isinstance(v, (dict, list))}
     assert state["gated_off"] > 0, "no failure arrived before the gate opened: nothing was held"
+    assert state["withheld"] == state["gated_off"], "a failure offered while shut went into the replay"
     assert state["trainer"]["evaluations"] > 0 and state["held"]["count"] == 0
     last = finished_run.records[-1]
     assert last["relabel_gate_open"] and last["relabel_held"] == 0

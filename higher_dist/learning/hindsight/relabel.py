@@ -31,7 +31,7 @@ import numpy as np
 
 from higher_dist import metrics as m
 from higher_dist.config import RELABEL_STRATEGIES, Config, GeneratorConfig, RelabelConfig
-from higher_dist.learning.episode import SUCCESS, Episode, episodes_from_state, episodes_state
+from higher_dist.learning.episode import SUCCESS, Episode, Withheld, episodes_from_state, episodes_state
 from higher_dist.learning.hindsight.generator import GeneratorTrainer
 from higher_dist.learning.hindsight.generator_data import generator_inputs
 from higher_dist.learning.seeds import RelabelerSeeds
@@ -86,6 +86,10 @@ class RelabelStrategy:
     def relabel(self, episodes: list[Episode]) -> list[Episode]:
         """Relabelled copies of the wrong-pick episodes among `episodes` (the originals are untouched)."""
         self.considered += len(relabel_candidates(episodes))
+        return []
+
+    def withheld(self, episodes: list[Episode]) -> list[Episode]:
+        """The originals among `episodes` to keep out of the replay (only the learned strategy keeps any)."""
         return []
 
     def _outcomes(self, candidates: list[Episode]) -> list[Outcome]:
@@ -219,7 +223,9 @@ class LearnedRelabel(RelabelStrategy):
     `_score`, after the fact).
     While the gate is closed nothing is relabelled and the failures offered are counted as `gated_off`;
     the newest `relabel.held_while_gated` of them are kept and relabelled once it opens (the agent then
-    learns from the frames it spent waiting for the gate too). An output that does not
+    learns from the frames it spent waiting for the gate too). With `relabel.withheld_while_gated` those
+    failures are also kept out of the replay while the gate is shut, counted as `withheld`: the agent
+    does not learn that its picks fail before it can learn from a relabel what they achieved. An output that does not
     parse to an object of the language is dropped and counted as `unparseable`, one whose object fewer
     than `generator.min_agreement` of `generator.agreement_draws` drawn instructions name is dropped and
     counted as `unsure`, one that names the episode's own (failed) goal is dropped and counted as
@@ -231,18 +237,27 @@ class LearnedRelabel(RelabelStrategy):
 
     def __init__(self, cfg: GeneratorConfig, spec: WorldSpec = DEFAULT_SPEC, seed: int | RelabelerSeeds = 0,
                  device: str = "cpu", max_per_episode: int = RelabelConfig.max_per_episode,
-                 held_while_gated: int = RelabelConfig.held_while_gated, words: str = RelabelConfig.words):
+                 held_while_gated: int = RelabelConfig.held_while_gated, words: str = RelabelConfig.words,
+                 withheld_while_gated: bool = RelabelConfig.withheld_while_gated):
         super().__init__(seed, spec, max_per_episode)
-        self.cfg, self.words = cfg, words
+        self.cfg, self.words, self.withhold = cfg, words, bool(withheld_while_gated)
         self.trainer = GeneratorTrainer(cfg, spec, seed, device=device)
         self.unparseable = 0
         self.unsure = 0  # parsed relabels dropped: too few of the generator's draws named their object
         self.gated_off = 0  # wrong picks offered while the gate was closed (the held ones among them)
+        self.withheld_count = 0  # of those, the originals kept out of the replay
         self.held: deque[Episode] = deque(maxlen=int(held_while_gated))  # the newest of them, oldest first
         self._steps_since_eval = 0
 
     def observe(self, episodes: list[Episode]) -> None:
         self.trainer.observe_episodes(episodes)
+
+    def withheld(self, episodes: list[Episode]) -> list[Episode]:
+        if not self.withhold or self.trainer.gate_open:
+            return []
+        kept_out = relabel_candidates(episodes)
+        self.withheld_count += len(kept_out)
+        return kept_out
 
     def relabel(self, episodes: list[Episode]) -> list[Episode]:
         candidates = relabel_candidates(episodes)
@@ -320,7 +335,7 @@ class LearnedRelabel(RelabelStrategy):
         t = self.trainer
         out.update({
             m.RELABEL_UNPARSEABLE: self.unparseable, m.RELABEL_UNSURE: self.unsure, m.RELABEL_GATED_OFF: self.gated_off,
-            m.RELABEL_HELD: len(self.held), m.RELABEL_GATE_OPEN: t.gate_open,
+            m.RELABEL_HELD: len(self.held), m.RELABEL_WITHHELD: self.withheld_count, m.RELABEL_GATE_OPEN: t.gate_open,
             m.RELABEL_DATASET_SIZE: len(t.dataset),
             # As of the latest evaluation (None before the first), and the dataset size it was measured at.
             m.GENERATOR_VAL_ACCURACY: self.generator_accuracy,
@@ -333,7 +348,8 @@ class LearnedRelabel(RelabelStrategy):
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
         state.update({"trainer": self.trainer.state_dict(), "unparseable": self.unparseable,
-                      "unsure": self.unsure, "gated_off": self.gated_off, "steps_since_eval": self._steps_since_eval,
+                      "unsure": self.unsure, "gated_off": self.gated_off, "withheld": self.withheld_count,
+                      "steps_since_eval": self._steps_since_eval,
                       "held": episodes_state(list(self.held))})
         return state
 
@@ -341,10 +357,21 @@ class LearnedRelabel(RelabelStrategy):
         super().load_state_dict(state)
         self.trainer.load_state_dict(state["trainer"])
         self.unparseable, self.gated_off = int(state["unparseable"]), int(state["gated_off"])
-        self.unsure = int(state.get("unsure", 0))
+        self.unsure, self.withheld_count = int(state.get("unsure", 0)), int(state.get("withheld", 0))
         self._steps_since_eval = int(state["steps_since_eval"])
         self.held.clear()
         self.held.extend(episodes_from_state(state["held"]) if "held" in state else [])
+
+
+def relabel_batch(strategy: RelabelStrategy, episodes: list[Episode]) -> tuple[list[Episode], Withheld]:
+    """What a batch of finished episodes gives the replay, as both runners store it: the originals the
+    strategy keeps in, then their relabelled copies; and what it kept out (the learner still counts those
+    frames). The strategy learns from the batch first (the generator's successes)."""
+    strategy.observe(episodes)
+    kept_out = strategy.withheld(episodes)  # read before relabelling: the gate as these episodes found it
+    copies = strategy.relabel(episodes)
+    out = {id(ep) for ep in kept_out}
+    return [ep for ep in episodes if id(ep) not in out] + copies, Withheld.of(kept_out)
 
 
 def make_relabel_strategy(cfg: Config, seed: int | RelabelerSeeds, space: ObjectSpace | None = None) -> RelabelStrategy:
@@ -364,5 +391,6 @@ def make_relabel_strategy(cfg: Config, seed: int | RelabelerSeeds, space: Object
                                   spec, most)
     if kind == "learned":
         return LearnedRelabel(cfg.generator, spec, seed, device=cfg.device, max_per_episode=most,
-                              held_while_gated=cfg.relabel.held_while_gated, words=cfg.relabel.words)
+                              held_while_gated=cfg.relabel.held_while_gated, words=cfg.relabel.words,
+                              withheld_while_gated=cfg.relabel.withheld_while_gated)
     raise ValueError(f"relabel.strategy: unknown strategy {kind!r}; choose one of {', '.join(RELABEL_STRATEGIES)}")
