@@ -53,7 +53,9 @@ class RelabelerService:
         self.pace = agent.generator_pace()
         self.trainable = self.strategy.name == "learned"  # only the generator has anything to train
         self.received = self.relabelled = 0
-        self.withheld_unsent = Withheld()  # kept out of the replay, not yet reported to the learner
+        # Kept out of the replay and not yet reported to the learner: only the failures since its last
+        # message, which a stop before the next one leaves uncounted (not checkpointed).
+        self.withheld_unsent = Withheld()
 
     def check(self, msg) -> list:
         """The message's episodes that pass the checks against the run's world; a WireError drops it all."""

@@ -225,8 +225,8 @@ class LearnedRelabel(RelabelStrategy):
     the newest `relabel.held_while_gated` of them are kept and relabelled once it opens (the agent then
     learns from the frames it spent waiting for the gate too). With `relabel.withheld_while_gated` those
     failures are also kept out of the replay while the gate is shut, counted as `withheld`: the agent
-    does not learn that its picks fail before it can learn from a relabel what they achieved. An output that does not
-    parse to an object of the language is dropped and counted as `unparseable`, one whose object fewer
+    does not learn that its picks fail before a relabel can teach it what they achieved. An output that
+    does not parse to an object of the language is dropped and counted as `unparseable`, one whose object fewer
     than `generator.min_agreement` of `generator.agreement_draws` drawn instructions name is dropped and
     counted as `unsure`, one that names the episode's own (failed) goal is dropped and counted as
     `contradicting`. With `words="expert"` the open gate lets through the expert's words instead of the
