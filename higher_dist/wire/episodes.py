@@ -83,8 +83,9 @@ def unpack_episodes(msg: Message, spec: WorldSpec, *, reject=None, allow_relabel
     A structural fault of the batch raises WireError (drop the message). A fault of one episode calls
     `reject(reason)` and drops that episode; without `reject` it raises WireError(reason) instead.
     allow_relabelled: whether this sender may send relabelled copies and withheld counts (only the
-    relabeler may); the counts must add up (`withheld_in` reads them). Each episode owns fresh, writable copies of its arrays, so the replay may keep one episode without
-    pinning the whole received batch in memory.
+    relabeler may); the counts must add up (`withheld_in` reads them). Each episode owns fresh, writable
+    copies of its arrays, so the replay may keep one episode without pinning the whole received batch in
+    memory.
     """
     if msg.type != "episodes":
         raise WireError("unknown_type", "expected episodes, got %s" % msg.type)
