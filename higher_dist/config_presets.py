@@ -83,7 +83,8 @@ def make_config(preset: str = "higher", world: str = "paper", profile: str = "de
         cfg = PAPER_WORLD_TUNING.get(preset, lambda c: c)(cfg)
     if world == "paper":
         cfg = replace(cfg, network=replace(cfg.network, text=PAPER_WORLD_TEXT),
-                      generator=replace(cfg.generator, **PAPER_WORLD_GENERATOR))
+                      generator=replace(cfg.generator, **PAPER_WORLD_GENERATOR),
+                      relabel=replace(cfg.relabel, **PAPER_WORLD_RELABEL.get(preset, {})))
     if is_babyai_world(world):
         cfg = _on_a_babyai_level(cfg)
     if profile == "paper":
@@ -116,6 +117,12 @@ def _on_a_babyai_level(cfg: Config) -> Config:
                                      updates_per_kframe=40.0, val_fraction=0.2))
 
 
+# HIGhER on the paper world keeps the failures it would relabel out of the replay until its gate opens,
+# so that its agent does not learn, while it waits, that every pick fails (docs/decisions.md, "Failures
+# kept out of the replay while the gate is shut").
+PAPER_WORLD_RELABEL = {"higher": {"withheld_while_gated": True}}
+
+
 # Per-preset settings measured on the paper world, applied on top of the dataclass defaults.
 PAPER_WORLD_TUNING = {"higher": _higher_on_the_paper_world}
 PAPER_DECAY_FRAMES = {"higher": 400_000}  # the paper's linear epsilon span; 100_000 for the others
@@ -123,11 +130,12 @@ PAPER_DECAY_FRAMES = {"higher": 400_000}  # the paper's linear epsilon span; 100
 
 def paper_profile(cfg: Config) -> Config:
     """The paper's settings on top of a preset (docs/paper_settings.md): the generator without the
-    front-cell shortcut, used ungated from 1000 pairs, and epsilon linear from 1.0 to 0.05 over 1e5
-    frames (4e5 for HIGhER), and the instruction read by a GRU. Its replay ratio and terminal time-outs
-    stay options."""
+    front-cell shortcut, used ungated from 1000 pairs with every failure stored while it waits, epsilon
+    linear from 1.0 to 0.05 over 1e5 frames (4e5 for HIGhER), and the instruction read by a GRU. Its
+    replay ratio and terminal time-outs stay options."""
     return replace(
         cfg, profile="paper", network=replace(cfg.network, text="gru"),
+        relabel=replace(cfg.relabel, withheld_while_gated=False),
         generator=replace(cfg.generator, front_cell_shortcut=False, n_min=1000, min_accuracy=0.0,
                           lr=GeneratorConfig.lr, conv_channels=GeneratorConfig.conv_channels),
         exploration=replace(cfg.exploration, kind="linear", eps_start=1.0, eps_end=0.05,

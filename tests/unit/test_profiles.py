@@ -19,7 +19,11 @@ from higher_dist.rundir import RunDir
 def test_paper_profile_applies_the_papers_settings_on_top_of_a_preset(preset, decay):
     ours, paper = make_config(preset, "paper"), make_config(preset, "paper", "paper")
     assert ours.profile == "default" and paper.profile == "paper"
-    assert paper.preset == preset and paper.relabel == ours.relabel  # the method stays the preset's
+    # The method stays the preset's; only HIGhER's default of keeping failures out while its gate is shut
+    # departs from the paper, and the profile turns it off.
+    assert paper.preset == preset and paper.relabel.strategy == ours.relabel.strategy
+    assert paper.relabel == replace(ours.relabel, withheld_while_gated=False)
+    assert ours.relabel.withheld_while_gated == (preset == "higher") and not paper.relabel.withheld_while_gated
     e = paper.exploration
     assert (e.kind, e.eps_start, e.eps_end, e.decay_frames) == ("linear", 1.0, 0.05, decay)
     g = paper.generator
