@@ -53,8 +53,11 @@ NOISE = ((("her", "her", "DQN+HER", ()),)
          + tuple((f"noisy-her-p{p}", "noisy-her", f"DQN+HER noisy p={p}", (f"relabel.noise_p={p}",))
                  for p in NOISE_LEVELS)
          + (("dqn", "dqn", "DQN", ()),))
+# The trigger runs store every failure until the generator starts, as the paper's do: kept out of the
+# replay until 2000 pairs, the agent would learn from successes alone for most of the run.
 TRIGGER = tuple((f"higher-trigger{n}", "higher", f"DQN+HIGhER from {n} pairs",
-                 (f"generator.n_min={n}", "generator.min_accuracy=0")) for n in TRIGGER_PAIRS)
+                 (f"generator.n_min={n}", "generator.min_accuracy=0", "relabel.withheld_while_gated=false"))
+                for n in TRIGGER_PAIRS)
 
 # What a BabyAI level cannot run, and why.
 NOT_ON_BABYAI = {

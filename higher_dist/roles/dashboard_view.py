@@ -278,6 +278,9 @@ def relabeler_panel(record: dict[str, Any]) -> Panel:
     t.add_row("val. accuracy", fmt_pct(record.get(m.GENERATOR_VAL_ACCURACY)))
     t.add_row("gate", gate_text)
     t.add_row("relabels/s", fmt_rate(record.get(m.RELABELS_PER_S)))
+    withheld = record.get(m.RELABEL_WITHHELD)
+    if _is_number(withheld) and withheld > 0:  # relabel.withheld_while_gated: why the replay grows slowly at first
+        t.add_row("kept out (gate shut)", fmt_int(withheld))
     t.add_row("relabelled eps", fmt_int(record.get(m.RELABELLED_EPISODES)))
     t.add_row("relabel accuracy", fmt_pct(record.get(m.RELABEL_ACCURACY)))
     return Panel(t, title="Relabeler", title_align="left")

@@ -137,6 +137,16 @@ def test_render_recorded_stream():
     assert "greedy, averaged" not in text  # a run without dqn.average_tau has no such row
 
 
+def test_failures_kept_out_behind_the_gate_get_a_row_only_when_there_are_some():
+    state = DashboardState()
+    state.update({**recorded_stream()[-1], "relabel_withheld": 1234}, now=0.0)
+    text = export(render(state, now=0.5))
+    assert "kept out (gate shut)" in text and "1,234" in text
+    state = DashboardState()
+    state.update({**recorded_stream()[-1], "relabel_withheld": 0}, now=0.0)
+    assert "kept out" not in export(render(state, now=0.5))
+
+
 def test_averaged_weights_get_their_own_row_and_summary_field():
     from higher_dist.launch.local_cluster import _summary
 

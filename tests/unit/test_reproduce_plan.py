@@ -56,6 +56,16 @@ def test_profile_reaches_every_run_as_the_cluster_flag(tmp_path):
     assert short["dqn-s0"].eval.every_frames == 600
 
 
+def test_paper_world_higher_keeps_failures_out_on_main_but_not_in_the_trigger_runs(tmp_path):
+    plan = plan_mod.build_plan(tmp_path / "p", ["main", "trigger"], 1, world="paper", profile="default",
+                               parallel=1, frames=100_000)
+    configs = plan_mod.check_configs(plan)
+    assert configs["higher-s0"].relabel.withheld_while_gated  # the paper world's default for HIGhER
+    # The trigger runs store every failure until their generator starts, as the paper's do.
+    assert not [n for n, c in configs.items() if "trigger" in n and c.relabel.withheld_while_gated]
+    assert len([n for n in configs if "trigger" in n]) == len(plan_mod.TRIGGER_PAIRS)
+
+
 def test_bad_overrides_are_refused_before_anything_runs(tmp_path):
     plan = build(tmp_path, ("main",), seeds=1, sets=["dqn.lr=fast"])
     with pytest.raises(ConfigError, match="dqn.lr"):
