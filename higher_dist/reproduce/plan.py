@@ -24,10 +24,11 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from higher_dist.config import Config, ConfigError, is_babyai_world
+from higher_dist.config import Config, ConfigError, from_dict, is_babyai_world
 from higher_dist.config_flags import add_config_flags, config_from_args
 from higher_dist.config_presets import make_config
 from higher_dist.launch import layout
+from higher_dist.resume import CHANGEABLE_ON_RESUME
 from higher_dist.rundir import atomic_write_bytes
 from higher_dist.world.spec import WorldSpec
 
@@ -275,7 +276,7 @@ def merge_and_write(plan: Plan) -> Plan:
     old_runs = {name: spec_from_dict(d) for name, d in old.get("runs", {}).items()}
     for run in plan.runs:
         previous = old_runs.get(run.name)
-        if previous is not None and not run.same_run(previous):
+        if previous is not None and not run.same_run(previous) and not _holds_its_config(plan, run):
             raise ConfigError(
                 f"--out {plan.out}: run {run.name} was planned there with other settings "
                 f"({' '.join(previous.flags)} vs {' '.join(run.flags)}); use another --out")
@@ -295,6 +296,27 @@ def merge_and_write(plan: Plan) -> Plan:
     plan.out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(plan.out / "plan.json", merged.to_json().encode())
     return merged
+
+
+def _holds_its_config(plan: Plan, run: RunSpec) -> bool:
+    """Whether the run's folder already holds this run: its config.json is the config `run`'s flags give
+    now, aside from what a resume may change. Flags that only restate what the run had (one made explicit
+    when a default changed) leave it the same run."""
+    path = plan.path(run) / "config.json"
+    if run.kind != "cluster" or not path.exists():
+        return False
+    try:
+        saved = from_dict(json.loads(path.read_text()))
+    except (OSError, ValueError, ConfigError):
+        return False
+    wanted = check_configs(replace(plan, runs=[run]))[run.name]
+    return _what_a_resume_keeps(saved) == _what_a_resume_keeps(wanted)
+
+
+def _what_a_resume_keeps(cfg: Config) -> dict[str, Any]:
+    d = {k: v for k, v in cfg.to_dict().items() if k not in CHANGEABLE_ON_RESUME}
+    d["eval"] = {k: v for k, v in d["eval"].items() if k != "every_frames"}  # set per plan (EVALS_PER_RUN)
+    return d
 
 
 def _union(old: dict[str, Any], new: dict[str, Any], key: str) -> list:

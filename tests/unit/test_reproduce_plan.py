@@ -66,6 +66,34 @@ def test_paper_world_higher_keeps_failures_out_on_main_but_not_in_the_trigger_ru
     assert len([n for n in configs if "trigger" in n]) == len(plan_mod.TRIGGER_PAIRS)
 
 
+def test_a_flag_that_restates_a_runs_saved_config_leaves_it_the_same_run(tmp_path):
+    from dataclasses import replace
+
+    def plan_again():
+        return plan_mod.build_plan(tmp_path / "p", ["trigger"], 1, world="small", profile="default",
+                                   parallel=1, frames=100_000)
+
+    plan = plan_again()
+    plan_mod.merge_and_write(plan)
+    name = "higher-trigger1000-s0"
+    run = next(r for r in plan.runs if r.name == name)
+    # An earlier plan gave the run fewer flags (a default was made explicit since).
+    recorded = json.loads((tmp_path / "p" / "plan.json").read_text())
+    recorded["runs"][name]["flags"] = [f for f in recorded["runs"][name]["flags"] if "withheld" not in f]
+    (tmp_path / "p" / "plan.json").write_text(json.dumps(recorded))
+    with pytest.raises(ConfigError, match="other settings"):  # nothing on disk says what the run was
+        plan_mod.merge_and_write(plan_again())
+    cfg = plan_mod.check_configs(plan)[name]
+    RunDir(str(plan.path(run))).write_config(replace(cfg, frames=50_000, actors=2))  # a resume may change these
+    merged = plan_mod.merge_and_write(plan_again())  # the saved config is what the flags give: the same run
+    assert "relabel.withheld_while_gated=false" in next(r for r in merged.runs if r.name == name).flags
+    # A saved config that differs in what is learned is another experiment, refused by name.
+    (tmp_path / "p" / "plan.json").write_text(json.dumps(recorded))
+    RunDir(str(plan.path(run))).write_config(replace(cfg, relabel=replace(cfg.relabel, withheld_while_gated=True)))
+    with pytest.raises(ConfigError, match=name):
+        plan_mod.merge_and_write(plan_again())
+
+
 def test_bad_overrides_are_refused_before_anything_runs(tmp_path):
     plan = build(tmp_path, ("main",), seeds=1, sets=["dqn.lr=fast"])
     with pytest.raises(ConfigError, match="dqn.lr"):
