@@ -24,11 +24,11 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from higher_dist.config import Config, ConfigError, from_dict, is_babyai_world
+from higher_dist.config import Config, ConfigError, is_babyai_world
 from higher_dist.config_flags import add_config_flags, config_from_args
 from higher_dist.config_presets import make_config
 from higher_dist.launch import layout
-from higher_dist.resume import CHANGEABLE_ON_RESUME
+from higher_dist.resume import CHANGEABLE_ON_RESUME, saved_config
 from higher_dist.rundir import atomic_write_bytes
 from higher_dist.world.spec import WorldSpec
 
@@ -302,12 +302,11 @@ def _holds_its_config(plan: Plan, run: RunSpec) -> bool:
     """Whether the run's folder already holds this run: its config.json is the config `run`'s flags give
     now, aside from what a resume may change. Flags that only restate what the run had (one made explicit
     when a default changed) leave it the same run."""
-    path = plan.path(run) / "config.json"
-    if run.kind != "cluster" or not path.exists():
+    if run.kind != "cluster":
         return False
     try:
-        saved = from_dict(json.loads(path.read_text()))
-    except (OSError, ValueError, ConfigError):
+        saved = saved_config(plan.path(run))  # missing or unreadable: nothing says what the run was
+    except ConfigError:
         return False
     wanted = check_configs(replace(plan, runs=[run]))[run.name]
     return _what_a_resume_keeps(saved) == _what_a_resume_keeps(wanted)
